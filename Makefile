@@ -1,0 +1,47 @@
+# Every target creates/uses the local virtual environment .venv on first use.
+PYTHON ?= python3
+VENV   ?= .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.installed-stamp
+
+ENV   ?= point_u_maze
+ALGO  ?= mb_dscpp
+SEED  ?= 0
+ARGS  ?=
+RUN   ?=
+
+.PHONY: install test train eval plot bench-env bench-learners bench-options clean
+
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -m pip install -q -e '.[dev,tensorboard]'
+	touch $(STAMP)
+
+install: $(STAMP)
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q tests
+
+train: $(STAMP)
+	$(BIN)/python -m dscpp_jax.cli train --env $(ENV) --algo $(ALGO) --seed $(SEED) $(ARGS)
+
+eval: $(STAMP)
+	@test -n "$(RUN)" || (echo "usage: make eval RUN=runs/<run-dir> [ARGS=...]"; exit 2)
+	$(BIN)/python -m dscpp_jax.cli eval --run $(RUN) $(ARGS)
+
+plot: $(STAMP)
+	@test -n "$(RUN)" || (echo "usage: make plot RUN='runs/<a> runs/<b>' [ARGS=...]"; exit 2)
+	$(BIN)/python -m dscpp_jax.cli plot $(RUN) $(ARGS)
+
+bench-env: $(STAMP)
+	$(BIN)/python experiments/bench_env.py $(ARGS)
+
+bench-learners: $(STAMP)
+	$(BIN)/python experiments/bench_learners.py $(ARGS)
+
+bench-options: $(STAMP)
+	$(BIN)/python experiments/bench_options.py $(ARGS)
+
+clean:
+	rm -rf $(VENV) .pytest_cache

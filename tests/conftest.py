@@ -1,0 +1,5 @@
+"""Shared pytest setup: CPU only, deterministic, quiet."""
+import os
+
+os.environ.setdefault("JAX_PLATFORMS", "cpu")
+os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
