@@ -1,0 +1,86 @@
+"""Goal-conditioned actor and twin critic (Flax linen).
+
+Both networks see the observation concatenated with the goal xy. The actor has two flavours:
+
+* ``tanh``: the usual TD3 actor, ``max_action * tanh(W h + b)``;
+* output normalisation (Agarwal et al. 2020, used by the model-based DSC++ variant): the linear
+  output ``a`` divided by ``max(1, mean |a|)`` over the action dimensions.
+
+The twin critic is one module whose parameters carry a leading axis of size 2 (``nn.vmap``), so
+``TwinCritic.apply`` returns both Q heads as an array of shape ``(2, ...)`` in one fused call.
+
+The dynamics model lives in :mod:`dscpp_jax.dynamics`.
+"""
+from __future__ import annotations
+
+from typing import Sequence
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+
+def _mlp_torso(x: jax.Array, hidden: Sequence[int]) -> jax.Array:
+    for i, width in enumerate(hidden):
+        x = nn.relu(nn.Dense(width, name=f"hidden_{i}")(x))
+    return x
+
+
+def normalise_output(a: jax.Array) -> jax.Array:
+    """Output normalisation: ``a / max(1, mean|a|)`` over the last axis."""
+    scale = jnp.maximum(1.0, jnp.mean(jnp.abs(a), axis=-1, keepdims=True))
+    return a / scale
+
+
+class Actor(nn.Module):
+    """Deterministic policy pi(obs, goal) -> action (any leading batch shape)."""
+
+    action_dim: int
+    hidden: Sequence[int] = (256, 256)
+    output_normalisation: bool = False
+    max_action: float = 1.0
+
+    @nn.compact
+    def __call__(self, obs: jax.Array, goal: jax.Array) -> jax.Array:
+        x = jnp.concatenate([obs, goal], axis=-1)
+        x = _mlp_torso(x, self.hidden)
+        a = nn.Dense(self.action_dim, name="out")(x)
+        if self.output_normalisation:
+            return normalise_output(a)
+        return self.max_action * jnp.tanh(a)
+
+
+class QNetwork(nn.Module):
+    """One Q head: Q(obs, goal, action) -> scalar (leading batch shape kept)."""
+
+    hidden: Sequence[int] = (256, 256)
+
+    @nn.compact
+    def __call__(self, obs: jax.Array, goal: jax.Array, action: jax.Array) -> jax.Array:
+        x = jnp.concatenate([obs, goal, action], axis=-1)
+        x = _mlp_torso(x, self.hidden)
+        return nn.Dense(1, name="out")(x)[..., 0]
+
+
+class TwinCritic(nn.Module):
+    """Two independent Q heads; returns an array of shape ``(2, *batch)``."""
+
+    hidden: Sequence[int] = (256, 256)
+    num_heads: int = 2
+
+    @nn.compact
+    def __call__(self, obs: jax.Array, goal: jax.Array, action: jax.Array) -> jax.Array:
+        heads = nn.vmap(
+            QNetwork,
+            variable_axes={"params": 0},
+            split_rngs={"params": True},
+            in_axes=None,
+            out_axes=0,
+            axis_size=self.num_heads,
+        )
+        return heads(hidden=self.hidden, name="heads")(obs, goal, action)
+
+
+def actor_action_dim(actor_params) -> int:
+    """The action size of an actor, read from its parameters (a static shape)."""
+    return int(actor_params["params"]["out"]["kernel"].shape[-1])

@@ -1,0 +1,331 @@
+"""Goal-conditioned TD3 (Fujimoto et al. 2018) as pure functions over a typed state.
+
+Inputs are the observation concatenated with a goal xy. Twin critics with clipped double-Q
+targets, target policy smoothing, delayed actor and target updates (one compiled function: the
+actor/target step sits behind ``lax.cond``). Sparse reward 0/-1 and the continuation flag come
+with the batch (see :class:`dscpp_jax.replay.Transition`; :mod:`dscpp_jax.her` builds them).
+
+Typical use::
+
+    cfg = TD3Config.model_free()
+    state = td3_init(key, obs_dim, 2, action_dim, cfg)
+    update = jax.jit(td3_update, static_argnums=0)
+    state, metrics = update(cfg, state, batch, key)
+    values = td3_value(cfg, state, obs, goal)          # min(Q1, Q2)(s, g, pi(s, g))
+
+All functions take the frozen config as their first (static) argument; jit them with
+``static_argnums=0`` or call them inside your own jitted code.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Callable, Dict, Optional, Tuple
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+import optax
+
+from dscpp_jax.networks import Actor, TwinCritic, actor_action_dim
+from dscpp_jax.replay import Transition
+
+PyTree = Any
+
+
+@dataclasses.dataclass(frozen=True)
+class TD3Config:
+    """TD3 hyperparameters (static; hashable so it can be a jit static argument).
+
+    Defaults follow Fujimoto et al. (2018) and the paper's appendix tables 1-2, except
+    ``batch_size``: the authors' code used 256 while the paper's table says 100; pass
+    ``batch_size=100`` to reproduce the table.
+    """
+
+    actor_lr: float = 3e-4
+    critic_lr: float = 3e-4
+    discount: float = 0.99  # gamma
+    tau: float = 0.005  # target update rate
+    policy_noise: float = 0.2  # target policy smoothing std (times max_action)
+    noise_clip: float = 0.5  # smoothing noise clip (times max_action)
+    policy_delay: int = 2  # one actor + target update every `policy_delay` critic updates
+    batch_size: int = 256
+    hidden: Tuple[int, ...] = (256, 256)
+    output_normalisation: bool = False  # linear actor output / max(1, mean|a|) instead of tanh
+    max_action: float = 1.0
+    exploration_noise: float = 0.1  # Gaussian std added to the actor's action when exploring
+    # Probability of a uniform-random action when exploring: `random_action_prob_start` until the
+    # agent has `random_action_switch_successes` successes, then `random_action_prob`
+    # (see td3_random_prob; the model-free schedule of the original is 0.8 -> 0.2 after 3).
+    random_action_prob: float = 0.2
+    random_action_prob_start: float = 0.8
+    random_action_switch_successes: int = 3
+    replay_capacity: int = 1_000_000
+
+    def __post_init__(self):
+        object.__setattr__(self, "hidden", tuple(int(h) for h in self.hidden))
+        if self.policy_delay < 1:
+            raise ValueError(f"TD3Config.policy_delay must be >= 1, got {self.policy_delay}")
+        if self.batch_size < 1:
+            raise ValueError(f"TD3Config.batch_size must be >= 1, got {self.batch_size}")
+        if not self.hidden or min(self.hidden) < 1:
+            raise ValueError(f"TD3Config.hidden must be positive layer widths, got {self.hidden}")
+        if not 0.0 <= self.tau <= 1.0:
+            raise ValueError(f"TD3Config.tau must be in [0, 1], got {self.tau}")
+        if not 0.0 <= self.discount <= 1.0:
+            raise ValueError(f"TD3Config.discount must be in [0, 1], got {self.discount}")
+        for name in ("random_action_prob", "random_action_prob_start"):
+            p = getattr(self, name)
+            if not 0.0 <= p <= 1.0:
+                raise ValueError(f"TD3Config.{name} must be a probability, got {p}")
+
+    @classmethod
+    def model_based(cls, **overrides) -> "TD3Config":
+        """Paper table 1: lr 1e-5, output normalisation, random-action probability 0.1."""
+        kw = dict(
+            actor_lr=1e-5,
+            critic_lr=1e-5,
+            output_normalisation=True,
+            random_action_prob=0.1,
+            random_action_prob_start=0.1,
+            random_action_switch_successes=0,
+        )
+        kw.update(overrides)
+        return cls(**kw)
+
+    @classmethod
+    def model_free(cls, **overrides) -> "TD3Config":
+        """Paper table 2: lr 3e-4, tanh actor, random-action probability 0.8 -> 0.2 after 3 successes."""
+        kw = dict(
+            actor_lr=3e-4,
+            critic_lr=3e-4,
+            output_normalisation=False,
+            random_action_prob=0.2,
+            random_action_prob_start=0.8,
+            random_action_switch_successes=3,
+        )
+        kw.update(overrides)
+        return cls(**kw)
+
+
+@flax.struct.dataclass
+class TD3State:
+    actor_params: PyTree
+    critic_params: PyTree
+    target_actor_params: PyTree
+    target_critic_params: PyTree
+    actor_opt_state: PyTree
+    critic_opt_state: PyTree
+    step: jax.Array  # int32: critic updates done so far
+
+
+def _actor(cfg: TD3Config, action_dim: int) -> Actor:
+    return Actor(
+        action_dim=action_dim,
+        hidden=cfg.hidden,
+        output_normalisation=cfg.output_normalisation,
+        max_action=cfg.max_action,
+    )
+
+
+def _critic(cfg: TD3Config) -> TwinCritic:
+    return TwinCritic(hidden=cfg.hidden)
+
+
+def _actor_tx(cfg: TD3Config) -> optax.GradientTransformation:
+    return optax.adam(cfg.actor_lr)
+
+
+def _critic_tx(cfg: TD3Config) -> optax.GradientTransformation:
+    return optax.adam(cfg.critic_lr)
+
+
+def td3_init(key: jax.Array, obs_dim: int, goal_dim: int, action_dim: int, cfg: TD3Config) -> TD3State:
+    """Fresh actor, twin critic, identical targets and Adam states."""
+    for name, v in (("obs_dim", obs_dim), ("goal_dim", goal_dim), ("action_dim", action_dim)):
+        if int(v) < 1:
+            raise ValueError(f"td3_init: {name} must be >= 1, got {v}")
+    ka, kc = jax.random.split(key)
+    obs = jnp.zeros((1, obs_dim), jnp.float32)
+    goal = jnp.zeros((1, goal_dim), jnp.float32)
+    act = jnp.zeros((1, action_dim), jnp.float32)
+    actor_params = _actor(cfg, action_dim).init(ka, obs, goal)
+    critic_params = _critic(cfg).init(kc, obs, goal, act)
+    return TD3State(
+        actor_params=actor_params,
+        critic_params=critic_params,
+        target_actor_params=actor_params,
+        target_critic_params=critic_params,
+        actor_opt_state=_actor_tx(cfg).init(actor_params),
+        critic_opt_state=_critic_tx(cfg).init(critic_params),
+        step=jnp.zeros((), jnp.int32),
+    )
+
+
+def _pi(cfg: TD3Config, actor_params: PyTree, obs: jax.Array, goal: jax.Array) -> jax.Array:
+    """Raw actor output (what the policy gradient differentiates)."""
+    return _actor(cfg, actor_action_dim(actor_params)).apply(actor_params, obs, goal)
+
+
+def _q(cfg: TD3Config, critic_params: PyTree, obs, goal, action) -> jax.Array:
+    return _critic(cfg).apply(critic_params, obs, goal, action)
+
+
+def td3_act(cfg: TD3Config, actor_params: PyTree, obs: jax.Array, goal: jax.Array) -> jax.Array:
+    """Deterministic action pi(obs, goal), clipped to [-max_action, max_action]; any batch shape."""
+    a = _pi(cfg, actor_params, obs, goal)
+    return jnp.clip(a, -cfg.max_action, cfg.max_action)
+
+
+def td3_random_prob(cfg: TD3Config, num_successes: jax.Array) -> jax.Array:
+    """Random-action probability given the number of successes so far (jit-able)."""
+    return jnp.where(
+        num_successes >= cfg.random_action_switch_successes,
+        cfg.random_action_prob,
+        cfg.random_action_prob_start,
+    ).astype(jnp.float32)
+
+
+def td3_explore(
+    cfg: TD3Config,
+    actor_params: PyTree,
+    key: jax.Array,
+    obs: jax.Array,
+    goal: jax.Array,
+    random_prob: Optional[jax.Array] = None,
+    noise_std: Optional[jax.Array] = None,
+) -> jax.Array:
+    """Exploration action: pi + N(0, noise_std), clipped; uniform random with prob ``random_prob``.
+
+    ``random_prob`` defaults to ``cfg.random_action_prob`` and ``noise_std`` to
+    ``cfg.exploration_noise`` (both times ``max_action``); either may be a traced scalar or an
+    array broadcastable to the batch shape ``obs.shape[:-1]``.
+    """
+    p = cfg.random_action_prob if random_prob is None else random_prob
+    sigma = cfg.exploration_noise if noise_std is None else noise_std
+    kn, ku, kr = jax.random.split(key, 3)
+    a = td3_act(cfg, actor_params, obs, goal)
+    sigma = jnp.asarray(sigma, a.dtype)[..., None] if jnp.ndim(sigma) else sigma
+    noisy = a + cfg.max_action * sigma * jax.random.normal(kn, a.shape, a.dtype)
+    noisy = jnp.clip(noisy, -cfg.max_action, cfg.max_action)
+    rand = jax.random.uniform(ku, a.shape, a.dtype, -cfg.max_action, cfg.max_action)
+    use_rand = jax.random.uniform(kr, a.shape[:-1]) < p
+    return jnp.where(use_rand[..., None], rand, noisy)
+
+
+def td3_value(cfg: TD3Config, state: TD3State, obs: jax.Array, goal: jax.Array) -> jax.Array:
+    """V(s | g) = min(Q1, Q2)(s, g, pi(s, g)) with the online networks; shape ``obs.shape[:-1]``."""
+    a = td3_act(cfg, state.actor_params, obs, goal)
+    return jnp.min(_q(cfg, state.critic_params, obs, goal, a), axis=0)
+
+
+def td3_target_noise(cfg: TD3Config, key: jax.Array, shape: Tuple[int, ...]) -> jax.Array:
+    """Target policy smoothing noise: clip(N(0, policy_noise), -noise_clip, noise_clip) * max_action."""
+    eps = cfg.policy_noise * jax.random.normal(key, shape)
+    return cfg.max_action * jnp.clip(eps, -cfg.noise_clip, cfg.noise_clip)
+
+
+def td3_targets(cfg: TD3Config, state: TD3State, batch: Transition, noise: jax.Array) -> jax.Array:
+    """Clipped double-Q TD targets ``r + gamma * c * min_i Q'_i(s', g, clip(pi'(s', g) + noise))``.
+
+    ``c = batch.discount`` is the continuation flag (0 at the goal). Pure; shape ``(B,)``.
+    """
+    a_next = _pi(cfg, state.target_actor_params, batch.next_obs, batch.goal)
+    a_next = jnp.clip(a_next + noise, -cfg.max_action, cfg.max_action)
+    q_next = jnp.min(_q(cfg, state.target_critic_params, batch.next_obs, batch.goal, a_next), axis=0)
+    return batch.reward + cfg.discount * batch.discount * q_next
+
+
+def _polyak(tau: float, target: PyTree, online: PyTree) -> PyTree:
+    return jax.tree_util.tree_map(lambda t, o: (1.0 - tau) * t + tau * o, target, online)
+
+
+def td3_update(
+    cfg: TD3Config, state: TD3State, batch: Transition, key: jax.Array
+) -> Tuple[TD3State, Dict[str, jax.Array]]:
+    """One critic step; every ``policy_delay``-th call also an actor step and soft target update."""
+    noise = td3_target_noise(cfg, key, batch.action.shape)
+    y = jax.lax.stop_gradient(td3_targets(cfg, state, batch, noise))
+
+    def critic_loss_fn(params):
+        q = _q(cfg, params, batch.obs, batch.goal, batch.action)  # (2, B)
+        return jnp.sum(jnp.mean(jnp.square(q - y[None]), axis=-1)), q
+
+    (critic_loss, q), grads = jax.value_and_grad(critic_loss_fn, has_aux=True)(state.critic_params)
+    updates, critic_opt_state = _critic_tx(cfg).update(grads, state.critic_opt_state, state.critic_params)
+    critic_params = optax.apply_updates(state.critic_params, updates)
+    step = state.step + 1
+
+    def actor_step(operand):
+        actor_params, actor_opt_state, t_actor, t_critic = operand
+
+        def actor_loss_fn(params):
+            a = _pi(cfg, params, batch.obs, batch.goal)
+            return -jnp.mean(_q(cfg, critic_params, batch.obs, batch.goal, a)[0])
+
+        loss, g = jax.value_and_grad(actor_loss_fn)(actor_params)
+        upd, actor_opt_state = _actor_tx(cfg).update(g, actor_opt_state, actor_params)
+        actor_params = optax.apply_updates(actor_params, upd)
+        t_actor = _polyak(cfg.tau, t_actor, actor_params)
+        t_critic = _polyak(cfg.tau, t_critic, critic_params)
+        return (actor_params, actor_opt_state, t_actor, t_critic), loss
+
+    def skip(operand):
+        return operand, jnp.zeros((), critic_loss.dtype)
+
+    do_actor = step % cfg.policy_delay == 0
+    (actor_params, actor_opt_state, t_actor, t_critic), actor_loss = jax.lax.cond(
+        do_actor,
+        actor_step,
+        skip,
+        (state.actor_params, state.actor_opt_state, state.target_actor_params, state.target_critic_params),
+    )
+    new_state = state.replace(
+        actor_params=actor_params,
+        critic_params=critic_params,
+        target_actor_params=t_actor,
+        target_critic_params=t_critic,
+        actor_opt_state=actor_opt_state,
+        critic_opt_state=critic_opt_state,
+        step=step,
+    )
+    metrics = {
+        "critic_loss": critic_loss,
+        "actor_loss": actor_loss,
+        "actor_updated": do_actor.astype(jnp.float32),
+        "q_mean": jnp.mean(q),
+        "target_mean": jnp.mean(y),
+        "reward_mean": jnp.mean(batch.reward),
+    }
+    return new_state, metrics
+
+
+def td3_updates(
+    cfg: TD3Config,
+    state: TD3State,
+    buffer: PyTree,
+    key: jax.Array,
+    num_steps: int,
+    sample_fn: Callable[[jax.Array, PyTree, int], Transition],
+) -> Tuple[TD3State, Dict[str, jax.Array]]:
+    """``num_steps`` (static) rounds of sample + :func:`td3_update` as one ``lax.scan``.
+
+    ``sample_fn(key, buffer, batch_size) -> Transition``, e.g.
+    ``lambda k, b, n: her_sample(k, b, n, strategy="future")``. Metrics are means over the steps
+    (``actor_loss`` over the steps that updated the actor).
+    """
+    num_steps = int(num_steps)
+    if num_steps < 1:
+        raise ValueError(f"td3_updates: num_steps must be >= 1, got {num_steps}")
+
+    def body(st, k):
+        ks, ku = jax.random.split(k)
+        batch = sample_fn(ks, buffer, cfg.batch_size)
+        st, m = td3_update(cfg, st, batch, ku)
+        return st, m
+
+    state, ms = jax.lax.scan(body, state, jax.random.split(key, num_steps))
+    n_actor = jnp.maximum(jnp.sum(ms["actor_updated"]), 1.0)
+    metrics = {k: jnp.mean(v) for k, v in ms.items() if k not in ("actor_loss", "actor_updated")}
+    metrics["actor_loss"] = jnp.sum(ms["actor_loss"]) / n_actor
+    metrics["actor_updates"] = jnp.sum(ms["actor_updated"])
+    return state, metrics
