@@ -1,0 +1,406 @@
+"""RBF kernel SVMs fitted on the accelerator with libsvm's SMO solver.
+
+Two problems, both in libsvm's dual form ``min ½ αᵀQα + pᵀα  s.t. 0 ≤ α_i ≤ C_i, yᵀα = Δ``:
+
+* C-SVC (``fit_svc``): ``Q_ij = y_i y_j K_ij``, ``p = -1``, ``α₀ = 0``; labels 1 → y = +1,
+  labels 0 → y = -1; ``C_i = C · w_class(i)``.
+* one-class ν-SVM (``fit_one_class``): ``Q = K``, ``p = 0``, ``C_i = 1``, ``Σα = ν·l``, started
+  from libsvm's feasible point (the first ⌊ν·l⌋ valid points at 1, the next at the remainder).
+
+The solver is SMO with second-order working-set selection (Fan, Chen & Lin 2005), the algorithm
+libsvm (and so scikit-learn's ``SVC`` / ``OneClassSVM``) uses. Each step needs two kernel rows,
+computed on the fly from the points, so no n×n matrix is ever stored. It runs in a
+``lax.while_loop`` with an iteration cap and a per-problem ``done`` flag, so a ``vmap``-ped batch of
+problems with different sizes finishes each problem independently (finished problems stop
+changing). Inputs are padded to a fixed number of slots and masked: padded slots get ``C_i = 0``
+and never enter the working set, so the padding size never changes the solution.
+
+Decision convention (``decision_function``): ``f(x) = Σ_i coef_i K(x_i, x) − ρ`` with
+``coef_i = y_i α_i``, positive means inside. Ties follow scikit-learn: a two-class model calls
+``f ≥ 0`` positive, a one-class model calls ``f > 0`` inside (``predict`` applies the right one).
+
+Everything is float32, jit-able and vmap-able. scikit-learn is only a test oracle.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+__all__ = [
+    "SVMModel",
+    "fit_svc",
+    "fit_one_class",
+    "decision_function",
+    "predict",
+    "default_max_iter",
+]
+
+# libsvm's floor on the curvature a_ij of a working pair.
+_TAU = 1e-12
+# SMO steps between two convergence checks of the while loop. On a GPU each check of a
+# data-dependent while loop costs a device-to-host sync, so several (masked) steps per check are
+# cheaper; results do not depend on it (a finished problem's extra steps are no-ops).
+INNER_STEPS = 8
+# Query rows per block in kernel sums (bounds memory at block × n_train floats).
+_BLOCK = 512
+
+
+@struct.dataclass
+class SVMModel:
+    """A fitted RBF SVM over fixed, padded training slots.
+
+    support:   (n, d) training points (every slot; non-support slots have ``coef == 0``).
+    coef:      (n,) ``y_i α_i`` (0 on padding and non-support vectors).
+    rho:       () intercept; ``f(x) = Σ coef_i K(support_i, x) − rho``.
+    gamma:     () RBF width, ``K(a, b) = exp(−gamma ‖a − b‖²)``.
+    mask:      (n,) bool, the valid training slots.
+    one_class: () bool, True for a one-class model (inside iff f > 0), False for C-SVC (f ≥ 0).
+    converged: () bool, the SMO gap fell below ``tol`` before the iteration cap.
+    n_iter:    () int32, SMO steps taken.
+    gap:       () float32, final maximal KKT violation (``Gmax + Gmax2`` in libsvm).
+    """
+
+    support: jax.Array
+    coef: jax.Array
+    rho: jax.Array
+    gamma: jax.Array
+    mask: jax.Array
+    one_class: jax.Array
+    converged: jax.Array
+    n_iter: jax.Array
+    gap: jax.Array
+
+
+# --------------------------------------------------------------------------------------------
+# Argument checks (trace time; only concrete values can be checked)
+
+
+def _concrete(value: Any):
+    """The value as a NumPy array, or None when it is traced."""
+    try:
+        return np.asarray(value)
+    except Exception:  # a tracer: cannot be checked at trace time
+        return None
+
+
+def _check_range(name: str, value: Any, lo: float, hi: float | None, lo_open: bool = True):
+    v = _concrete(value)
+    if v is None:
+        return
+    if not np.all(np.isfinite(v)):
+        raise ValueError(f"{name} must be finite, got {value!r}")
+    bad_lo = np.any(v <= lo) if lo_open else np.any(v < lo)
+    bad_hi = hi is not None and np.any(v > hi)
+    if bad_lo or bad_hi:
+        interval = f"({lo}, {hi}]" if hi is not None else f"> {lo}"
+        raise ValueError(f"{name} must be in {interval}, got {value!r}")
+
+
+def _check_points(X, mask, labels=None):
+    if getattr(X, "ndim", None) != 2:
+        raise ValueError(f"X must be a (n, d) array of points, got shape {getattr(X, 'shape', None)}")
+    n = X.shape[0]
+    if n == 0:
+        raise ValueError("X needs at least one slot (pad with masked-out rows instead)")
+    if getattr(mask, "shape", None) != (n,):
+        raise ValueError(f"mask must have shape ({n},) to match X {X.shape}, got {getattr(mask, 'shape', None)}")
+    if labels is not None and getattr(labels, "shape", None) != (n,):
+        raise ValueError(f"labels must have shape ({n},) to match X {X.shape}, got {getattr(labels, 'shape', None)}")
+
+
+def default_max_iter(n_slots: int) -> int:
+    """Iteration cap used when ``max_iter`` is None: ``max(10_000, 4 · n_slots)``."""
+    return max(10_000, 4 * int(n_slots))
+
+
+def _check_max_iter(max_iter, n):
+    if max_iter is None:
+        return default_max_iter(n)
+    if not isinstance(max_iter, (int, np.integer)) or max_iter < 1:
+        raise ValueError(f"max_iter must be a positive int or None, got {max_iter!r}")
+    return int(max_iter)
+
+
+# --------------------------------------------------------------------------------------------
+# Kernels
+
+
+def _sq_dist(Xa, Xb):
+    """(a, b) squared distances, summed feature by feature (no 3-D intermediate, no matmul)."""
+    d2 = jnp.zeros((Xa.shape[0], Xb.shape[0]), Xa.dtype)
+    for k in range(Xa.shape[1]):
+        d2 = d2 + (Xa[:, k, None] - Xb[None, :, k]) ** 2
+    return d2
+
+
+def _kernel_row(X, x, gamma):
+    """K(X_t, x) for all t: (n,)."""
+    return jnp.exp(-gamma * jnp.sum((X - x) ** 2, axis=-1))
+
+
+def _kernel_sum(X, coef, Xq, gamma):
+    """Σ_i coef_i K(X_i, Xq_q) for every query row, in blocks of queries: (q,).
+
+    An elementwise product + sum (not a matmul) keeps full float32 precision on GPUs whose
+    matmuls default to TF32.
+    """
+    q = Xq.shape[0]
+    if q <= _BLOCK:
+        return jnp.sum(jnp.exp(-gamma * _sq_dist(Xq, X)) * coef[None, :], axis=1)
+    nb = -(-q // _BLOCK)
+    Xqp = jnp.pad(Xq, ((0, nb * _BLOCK - q), (0, 0)))
+
+    def block(xb):
+        return jnp.sum(jnp.exp(-gamma * _sq_dist(xb, X)) * coef[None, :], axis=1)
+
+    out = jax.lax.map(block, Xqp.reshape(nb, _BLOCK, Xq.shape[1]))
+    return out.reshape(-1)[:q]
+
+
+# --------------------------------------------------------------------------------------------
+# SMO
+
+
+@struct.dataclass
+class _SMOState:
+    alpha: jax.Array
+    G: jax.Array
+    it: jax.Array
+    done: jax.Array
+
+
+def _working_set(y, Cv, alpha, G):
+    """libsvm's index sets and maximal violations: (I_up, I_low, i, Gmax, gap)."""
+    up = jnp.where(y > 0, alpha < Cv, alpha > 0)
+    low = jnp.where(y > 0, alpha > 0, alpha < Cv)
+    score_up = jnp.where(up, -y * G, -jnp.inf)
+    i = jnp.argmax(score_up)
+    gmax = score_up[i]
+    gmax2 = jnp.max(jnp.where(low, y * G, -jnp.inf))
+    return up, low, i, gmax, gmax + gmax2
+
+
+def _smo_step(X, y, Cv, gamma, tol, max_iter, s: _SMOState) -> _SMOState:
+    alpha, G = s.alpha, s.G
+    _, low, i, gmax, gap = _working_set(y, Cv, alpha, G)
+    Ki = _kernel_row(X, X[i], gamma)
+    b = gmax + y * G
+    a = 2.0 - 2.0 * Ki  # K_ii + K_jj − 2 K_ij with K_tt = 1 for the RBF kernel
+    a = jnp.where(a > 0, a, _TAU)
+    obj = jnp.where(low & (b > 0), -(b * b) / a, jnp.inf)
+    j = jnp.argmin(obj)
+    found = jnp.isfinite(obj[j])
+    stop = (gap < tol) | (~found) | (~jnp.isfinite(gap))
+    active = (~s.done) & (~stop) & (s.it < max_iter)
+
+    Kj = _kernel_row(X, X[j], gamma)
+    yi, yj = y[i], y[j]
+    room_i = jnp.where(yi > 0, Cv[i] - alpha[i], alpha[i])
+    room_j = jnp.where(yj > 0, alpha[j], Cv[j] - alpha[j])
+    t_free = b[j] / a[j]
+    t = jnp.minimum(t_free, jnp.minimum(room_i, room_j))
+    t = jnp.where(active, jnp.maximum(t, 0.0), 0.0)
+    # land exactly on a bound when the step is clipped there (float32 round-off otherwise leaves
+    # a sliver of room that would keep the index in the working set)
+    bound_i = jnp.where(yi > 0, Cv[i], 0.0)
+    bound_j = jnp.where(yj > 0, 0.0, Cv[j])
+    new_ai = jnp.where(active & (t >= room_i), bound_i, alpha[i] + yi * t)
+    new_aj = jnp.where(active & (t >= room_j), bound_j, alpha[j] - yj * t)
+    alpha = alpha.at[i].set(new_ai).at[j].set(new_aj)
+    G = G + (y * t) * (Ki - Kj)  # G_k += Q_ik Δα_i + Q_jk Δα_j
+    return _SMOState(
+        alpha=alpha,
+        G=G,
+        it=s.it + active.astype(jnp.int32),
+        done=s.done | (stop & (s.it < max_iter)),
+    )
+
+
+def _solve(X, y, Cv, alpha0, G0, gamma, tol, max_iter: int, inner: int):
+    """Run SMO from a feasible (alpha0, G0 = Qα₀ + p). Returns (alpha, G, n_iter, gap)."""
+    step = functools.partial(_smo_step, X, y, Cv, gamma, tol, max_iter)
+
+    def body(s):
+        if inner == 1:
+            return step(s)
+        return jax.lax.fori_loop(0, inner, lambda _, c: step(c), s, unroll=True)
+
+    def cond(s):
+        return (~s.done) & (s.it < max_iter)
+
+    s0 = _SMOState(alpha=alpha0, G=G0, it=jnp.zeros((), jnp.int32), done=jnp.zeros((), bool))
+    s = jax.lax.while_loop(cond, body, s0)
+    _, _, _, _, gap = _working_set(y, Cv, s.alpha, s.G)
+    gap = jnp.where(jnp.isfinite(gap), gap, 0.0)  # an empty working set is optimal
+    return s.alpha, s.G, s.it, gap
+
+
+def _rho(y, Cv, alpha, G, mask):
+    """libsvm's calculate_rho: mean y·G over free SVs, else the midpoint of the bounds."""
+    yG = y * G
+    upper = alpha >= Cv
+    lower = alpha <= 0
+    free = mask & ~upper & ~lower
+    ub_set = mask & ((upper & (y < 0)) | (lower & (y > 0)))
+    lb_set = mask & ((upper & (y > 0)) | (lower & (y < 0)))
+    ub = jnp.min(jnp.where(ub_set, yG, jnp.inf))
+    lb = jnp.max(jnp.where(lb_set, yG, -jnp.inf))
+    nfree = jnp.sum(free)
+    r_free = jnp.sum(jnp.where(free, yG, 0.0)) / jnp.maximum(nfree, 1)
+    fin_ub, fin_lb = jnp.isfinite(ub), jnp.isfinite(lb)
+    r_bound = jnp.where(
+        fin_ub & fin_lb, 0.5 * (ub + lb), jnp.where(fin_ub, ub, jnp.where(fin_lb, lb, 0.0))
+    )
+    rho = jnp.where(nfree > 0, r_free, r_bound)
+    # no valid point at all: a model that contains nothing
+    return jnp.where(jnp.any(mask), rho, 1.0)
+
+
+# --------------------------------------------------------------------------------------------
+# Problem set-up (shared with initiation.py, which switches between them with traced flags)
+
+
+def _svc_problem(labels, mask, C, balanced):
+    """(y, C_i, α₀, G₀) of a C-SVC; ``balanced`` may be a traced bool."""
+    mask = mask.astype(bool)
+    pos = mask & (labels > 0)
+    neg = mask & ~(labels > 0)
+    y = jnp.where(labels > 0, 1.0, -1.0).astype(jnp.float32)
+    n = jnp.sum(mask).astype(jnp.float32)
+    n_pos = jnp.sum(pos).astype(jnp.float32)
+    n_neg = jnp.sum(neg).astype(jnp.float32)
+    # scikit-learn's "balanced": n / (n_classes · n_c), with n_classes = 2 for a two-class fit
+    w_pos = jnp.where(balanced, n / (2.0 * jnp.maximum(n_pos, 1.0)), 1.0)
+    w_neg = jnp.where(balanced, n / (2.0 * jnp.maximum(n_neg, 1.0)), 1.0)
+    Cv = jnp.where(pos, C * w_pos, jnp.where(neg, C * w_neg, 0.0)).astype(jnp.float32)
+    alpha0 = jnp.zeros_like(Cv)
+    G0 = jnp.full_like(Cv, -1.0)
+    return y, Cv, alpha0, G0
+
+
+def _one_class_alpha0(mask, nu):
+    """libsvm's start: first ⌊ν·l⌋ valid points at 1, the next at ν·l − ⌊ν·l⌋."""
+    mask = mask.astype(bool)
+    rank = jnp.cumsum(mask) - 1
+    nul = nu * jnp.sum(mask).astype(jnp.float32)
+    return jnp.where(mask, jnp.clip(nul - rank.astype(jnp.float32), 0.0, 1.0), 0.0)
+
+
+def _one_class_problem(X, mask, nu, gamma):
+    mask = mask.astype(bool)
+    y = jnp.ones(mask.shape, jnp.float32)
+    Cv = mask.astype(jnp.float32)
+    alpha0 = _one_class_alpha0(mask, nu)
+    G0 = _kernel_sum(X, alpha0, X, gamma)
+    return y, Cv, alpha0, G0
+
+
+def _fit_problem(X, mask, problem, one_class, gamma, tol, max_iter, inner) -> SVMModel:
+    y, Cv, alpha0, G0 = problem
+    alpha, G, n_iter, gap = _solve(X, y, Cv, alpha0, G0, gamma, tol, max_iter, inner)
+    mask = mask.astype(bool)
+    alpha = jnp.where(mask, alpha, 0.0)
+    return SVMModel(
+        support=X,
+        coef=y * alpha,
+        rho=_rho(y, Cv, alpha, G, mask).astype(jnp.float32),
+        gamma=jnp.asarray(gamma, jnp.float32),
+        mask=mask,
+        one_class=jnp.asarray(one_class, bool),
+        converged=gap < tol,
+        n_iter=n_iter,
+        gap=gap.astype(jnp.float32),
+    )
+
+
+@functools.partial(jax.jit, static_argnames=("max_iter", "inner"))
+def _fit_svc_jit(X, labels, mask, gamma, C, balanced, tol, max_iter, inner):
+    X = X.astype(jnp.float32)
+    problem = _svc_problem(labels, mask, jnp.asarray(C, jnp.float32), balanced)
+    return _fit_problem(X, mask, problem, False, gamma, tol, max_iter, inner)
+
+
+@functools.partial(jax.jit, static_argnames=("max_iter", "inner"))
+def _fit_one_class_jit(X, mask, nu, gamma, tol, max_iter, inner):
+    X = X.astype(jnp.float32)
+    problem = _one_class_problem(X, mask, jnp.asarray(nu, jnp.float32), gamma)
+    return _fit_problem(X, mask, problem, True, gamma, tol, max_iter, inner)
+
+
+# --------------------------------------------------------------------------------------------
+# Public API
+
+
+def fit_svc(X, labels, mask, *, gamma, C=1.0, class_weight=None, tol=1e-3, max_iter=None,
+            _inner: int = INNER_STEPS) -> SVMModel:
+    """Fit a two-class RBF C-SVC (scikit-learn ``SVC(kernel="rbf", gamma, C, class_weight, tol)``).
+
+    X: (n, d) points (padded slots anywhere); labels: (n,) 1 = positive, 0 = negative;
+    mask: (n,) bool, True on valid slots. gamma > 0, C > 0, tol > 0 may be traced.
+    class_weight: None, "balanced" (w_c = n / (2 n_c)), or a (traced) bool scalar choosing
+    balanced weights at run time. max_iter: SMO step cap (static), default
+    ``max(10_000, 4 n)``; check ``model.converged``.
+
+    With a single class present (scikit-learn raises) the result is the constant classifier of
+    that class: all α = 0 and ``f ≡ +1`` (only positives) or ``f ≡ −1`` (only negatives); with
+    no valid point at all ``f ≡ −1``. Callers wanting DSC's behaviour fit a one-class SVM instead.
+    Jit- and vmap-able; different valid counts at the same padded size never retrace.
+    """
+    _check_points(X, mask, labels)
+    _check_range("gamma", gamma, 0.0, None)
+    _check_range("C", C, 0.0, None)
+    _check_range("tol", tol, 0.0, None)
+    if class_weight is None:
+        balanced = False
+    elif isinstance(class_weight, str):
+        if class_weight != "balanced":
+            raise ValueError(f"class_weight must be None, 'balanced' or a bool, got {class_weight!r}")
+        balanced = True
+    elif isinstance(class_weight, dict):
+        raise ValueError("class_weight dicts are not supported; use None, 'balanced' or a bool")
+    else:
+        balanced = jnp.asarray(class_weight, bool)
+        if balanced.shape != ():
+            raise ValueError(f"a class_weight switch must be a scalar bool, got shape {balanced.shape}")
+    max_iter = _check_max_iter(max_iter, X.shape[0])
+    return _fit_svc_jit(X, labels, mask, gamma, C, balanced, tol, max_iter=max_iter, inner=_inner)
+
+
+def fit_one_class(X, mask, *, nu, gamma, tol=1e-3, max_iter=None,
+                  _inner: int = INNER_STEPS) -> SVMModel:
+    """Fit an RBF one-class ν-SVM (scikit-learn ``OneClassSVM(kernel="rbf", nu, gamma, tol)``).
+
+    X: (n, d) points; mask: (n,) bool valid slots; nu in (0, 1], gamma > 0 (both may be traced).
+    ν·l < 1 is fine (a single fractional α). With no valid point the model contains nothing.
+    ``decision_function`` equals scikit-learn's (ρ = its ``offset_``); inside iff f > 0.
+    """
+    _check_points(X, mask)
+    _check_range("nu", nu, 0.0, 1.0)
+    _check_range("gamma", gamma, 0.0, None)
+    _check_range("tol", tol, 0.0, None)
+    max_iter = _check_max_iter(max_iter, X.shape[0])
+    return _fit_one_class_jit(X, mask, nu, gamma, tol, max_iter=max_iter, inner=_inner)
+
+
+def decision_function(model: SVMModel, X_query) -> jax.Array:
+    """f(x) = Σ coef_i K(support_i, x) − ρ for (q, d) or (d,) queries; positive = inside."""
+    Xq = jnp.asarray(X_query, jnp.float32)
+    d = model.support.shape[-1]
+    if Xq.shape[-1] != d:
+        raise ValueError(f"queries must have {d} features (last axis), got shape {Xq.shape}")
+    single = Xq.ndim == 1
+    Xq2 = Xq.reshape(-1, d)
+    f = _kernel_sum(model.support, model.coef, Xq2, model.gamma) - model.rho
+    return f[0] if single else f.reshape(Xq.shape[:-1])
+
+
+def predict(model: SVMModel, X_query) -> jax.Array:
+    """Inside/positive as scikit-learn decides: f ≥ 0 for a C-SVC, f > 0 for a one-class SVM."""
+    f = decision_function(model, X_query)
+    return jnp.where(model.one_class, f > 0, f >= 0)
