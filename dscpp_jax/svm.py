@@ -43,10 +43,19 @@ __all__ = [
 
 # libsvm's floor on the curvature a_ij of a working pair.
 _TAU = 1e-12
-# SMO steps between two convergence checks of the while loop. On a GPU each check of a
-# data-dependent while loop costs a device-to-host sync, so several (masked) steps per check are
-# cheaper; results do not depend on it (a finished problem's extra steps are no-ops).
-INNER_STEPS = 8
+# SMO steps between two convergence checks of the while loop, per backend. On a GPU each check of
+# a data-dependent while loop costs a device-to-host sync, so several (masked) steps per check are
+# cheaper; on a CPU one step per check compiles faster and runs faster. Results do not depend on
+# it (a finished problem's extra steps are no-ops).
+INNER_STEPS = {"cpu": 1, "default": 8}
+
+
+def _resolve_inner(inner):
+    if inner is None:
+        return INNER_STEPS.get(jax.default_backend(), INNER_STEPS["default"])
+    if not isinstance(inner, int) or inner < 1:
+        raise ValueError(f"inner steps must be a positive int, got {inner!r}")
+    return inner
 # Query rows per block in kernel sums (bounds memory at block × n_train floats).
 _BLOCK = 512
 
@@ -139,9 +148,12 @@ def _sq_dist(Xa, Xb):
     return d2
 
 
-def _kernel_row(X, x, gamma):
-    """K(X_t, x) for all t: (n,)."""
-    return jnp.exp(-gamma * jnp.sum((X - x) ** 2, axis=-1))
+def _kernel_row(Xt, i, gamma):
+    """K(X_t, X_i) for all t: (n,), from feature-major points Xt (d, n)."""
+    d2 = (Xt[0] - Xt[0, i]) ** 2
+    for k in range(1, Xt.shape[0]):
+        d2 = d2 + (Xt[k] - Xt[k, i]) ** 2
+    return jnp.exp(-gamma * d2)
 
 
 def _kernel_sum(X, coef, Xq, gamma):
@@ -175,31 +187,37 @@ class _SMOState:
     done: jax.Array
 
 
+def _argmax(v):
+    """(first index of the maximum, maximum); two plain reductions (fast on CPU and GPU)."""
+    m = jnp.max(v)
+    idx = jnp.min(jnp.where(v == m, jnp.arange(v.shape[0], dtype=jnp.int32), v.shape[0] - 1))
+    return idx, m
+
+
 def _working_set(y, Cv, alpha, G):
     """libsvm's index sets and maximal violations: (I_up, I_low, i, Gmax, gap)."""
     up = jnp.where(y > 0, alpha < Cv, alpha > 0)
     low = jnp.where(y > 0, alpha > 0, alpha < Cv)
     score_up = jnp.where(up, -y * G, -jnp.inf)
-    i = jnp.argmax(score_up)
-    gmax = score_up[i]
+    i, gmax = _argmax(score_up)
     gmax2 = jnp.max(jnp.where(low, y * G, -jnp.inf))
     return up, low, i, gmax, gmax + gmax2
 
 
-def _smo_step(X, y, Cv, gamma, tol, max_iter, s: _SMOState) -> _SMOState:
+def _smo_step(Xt, y, Cv, gamma, tol, max_iter, s: _SMOState) -> _SMOState:
     alpha, G = s.alpha, s.G
     _, low, i, gmax, gap = _working_set(y, Cv, alpha, G)
-    Ki = _kernel_row(X, X[i], gamma)
+    Ki = _kernel_row(Xt, i, gamma)
     b = gmax + y * G
     a = 2.0 - 2.0 * Ki  # K_ii + K_jj − 2 K_ij with K_tt = 1 for the RBF kernel
     a = jnp.where(a > 0, a, _TAU)
     obj = jnp.where(low & (b > 0), -(b * b) / a, jnp.inf)
-    j = jnp.argmin(obj)
-    found = jnp.isfinite(obj[j])
+    j, obj_min = _argmax(-obj)
+    found = jnp.isfinite(obj_min)
     stop = (gap < tol) | (~found) | (~jnp.isfinite(gap))
     active = (~s.done) & (~stop) & (s.it < max_iter)
 
-    Kj = _kernel_row(X, X[j], gamma)
+    Kj = _kernel_row(Xt, j, gamma)
     yi, yj = y[i], y[j]
     room_i = jnp.where(yi > 0, Cv[i] - alpha[i], alpha[i])
     room_j = jnp.where(yj > 0, alpha[j], Cv[j] - alpha[j])
@@ -224,7 +242,7 @@ def _smo_step(X, y, Cv, gamma, tol, max_iter, s: _SMOState) -> _SMOState:
 
 def _solve(X, y, Cv, alpha0, G0, gamma, tol, max_iter: int, inner: int):
     """Run SMO from a feasible (alpha0, G0 = Qα₀ + p). Returns (alpha, G, n_iter, gap)."""
-    step = functools.partial(_smo_step, X, y, Cv, gamma, tol, max_iter)
+    step = functools.partial(_smo_step, X.T, y, Cv, gamma, tol, max_iter)
 
     def body(s):
         if inner == 1:
@@ -338,7 +356,7 @@ def _fit_one_class_jit(X, mask, nu, gamma, tol, max_iter, inner):
 
 
 def fit_svc(X, labels, mask, *, gamma, C=1.0, class_weight=None, tol=1e-3, max_iter=None,
-            _inner: int = INNER_STEPS) -> SVMModel:
+            _inner: int | None = None) -> SVMModel:
     """Fit a two-class RBF C-SVC (scikit-learn ``SVC(kernel="rbf", gamma, C, class_weight, tol)``).
 
     X: (n, d) points (padded slots anywhere); labels: (n,) 1 = positive, 0 = negative;
@@ -369,11 +387,11 @@ def fit_svc(X, labels, mask, *, gamma, C=1.0, class_weight=None, tol=1e-3, max_i
         if balanced.shape != ():
             raise ValueError(f"a class_weight switch must be a scalar bool, got shape {balanced.shape}")
     max_iter = _check_max_iter(max_iter, X.shape[0])
-    return _fit_svc_jit(X, labels, mask, gamma, C, balanced, tol, max_iter=max_iter, inner=_inner)
+    return _fit_svc_jit(X, labels, mask, gamma, C, balanced, tol, max_iter=max_iter, inner=_resolve_inner(_inner))
 
 
 def fit_one_class(X, mask, *, nu, gamma, tol=1e-3, max_iter=None,
-                  _inner: int = INNER_STEPS) -> SVMModel:
+                  _inner: int | None = None) -> SVMModel:
     """Fit an RBF one-class ν-SVM (scikit-learn ``OneClassSVM(kernel="rbf", nu, gamma, tol)``).
 
     X: (n, d) points; mask: (n,) bool valid slots; nu in (0, 1], gamma > 0 (both may be traced).
@@ -385,7 +403,7 @@ def fit_one_class(X, mask, *, nu, gamma, tol=1e-3, max_iter=None,
     _check_range("gamma", gamma, 0.0, None)
     _check_range("tol", tol, 0.0, None)
     max_iter = _check_max_iter(max_iter, X.shape[0])
-    return _fit_one_class_jit(X, mask, nu, gamma, tol, max_iter=max_iter, inner=_inner)
+    return _fit_one_class_jit(X, mask, nu, gamma, tol, max_iter=max_iter, inner=_resolve_inner(_inner))
 
 
 def decision_function(model: SVMModel, X_query) -> jax.Array:

@@ -1,0 +1,259 @@
+"""Initiation classifiers of an option: optimistic + pessimistic kernel SVMs (paper §3.1).
+
+Dual variant (DSC++), refit from an option's positive examples (start states and the last states
+of successful rollouts) and negative examples (start states of failed rollouts), x,y only:
+
+* positives and negatives: optimistic = two-class RBF SVC (C = 1, class_weight "balanced" once
+  there are ≥ 10 negatives); pessimistic = one-class ν-SVM (ν = 0.1) fit on the positives the SVC
+  itself calls positive (the previous pessimistic model is kept when there are none);
+* positives only: pessimistic = one-class ν = 0.1, optimistic = one-class ν = 0.01;
+* no positives: nothing changes (an option never fitted contains nothing).
+
+Initiation = optimistic OR pessimistic; other options target the pessimistic region.
+
+Single variant (baseline DSC, Bagaria & Konidaris 2020): one classifier, a two-class SVC when
+negatives exist (balanced from 10 negatives) else a one-class SVM (ν = 0.1); it is both the
+initiation set and the region the next option targets (stored in both fields).
+
+Every switch above is a traced value on fixed, padded arrays + masks, so a fit is jit-able and
+``fit_initiation_batch`` refits a batch of options at once with ``vmap`` (each problem's SMO loop
+stops on its own).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from dscpp_jax import svm
+from dscpp_jax.svm import SVMModel
+
+__all__ = [
+    "InitiationConfig",
+    "InitiationClassifiers",
+    "empty_initiation",
+    "fit_initiation",
+    "fit_initiation_batch",
+    "initiation_contains",
+    "optimistic_contains",
+    "pessimistic_contains",
+]
+
+VARIANTS = ("dual", "single")
+
+
+@dataclasses.dataclass(frozen=True)
+class InitiationConfig:
+    """Classifier hyperparameters (static, hashable).
+
+    variant: "dual" (optimistic + pessimistic, DSC++) or "single" (baseline DSC).
+    gamma: RBF width for x,y features (the original's "auto" = 1 / n_features = 0.5).
+    C: SVC box constraint. nu_pessimistic / nu_optimistic: one-class ν of the pessimistic model
+    and of the positives-only optimistic model. nu_single: ν of the single variant's one-class
+    model. balanced_min_negatives: class_weight "balanced" from this many negatives on.
+    tol, max_iter: SMO stopping tolerance and step cap (None: ``svm.default_max_iter``).
+    """
+
+    variant: str = "dual"
+    gamma: float = 0.5
+    C: float = 1.0
+    nu_pessimistic: float = 0.1
+    nu_optimistic: float = 0.01
+    nu_single: float = 0.1
+    balanced_min_negatives: int = 10
+    tol: float = 1e-3
+    max_iter: int | None = None
+
+    def __post_init__(self):
+        if self.variant not in VARIANTS:
+            raise ValueError(f"variant must be one of {VARIANTS}, got {self.variant!r}")
+        if not self.gamma > 0:
+            raise ValueError(f"gamma must be > 0, got {self.gamma}")
+        if not self.C > 0:
+            raise ValueError(f"C must be > 0, got {self.C}")
+        for name in ("nu_pessimistic", "nu_optimistic", "nu_single"):
+            v = getattr(self, name)
+            if not 0 < v <= 1:
+                raise ValueError(f"{name} must be in (0, 1], got {v}")
+        if not self.tol > 0:
+            raise ValueError(f"tol must be > 0, got {self.tol}")
+        if self.max_iter is not None and (not isinstance(self.max_iter, int) or self.max_iter < 1):
+            raise ValueError(f"max_iter must be a positive int or None, got {self.max_iter!r}")
+        if self.balanced_min_negatives < 0:
+            raise ValueError("balanced_min_negatives must be >= 0")
+
+
+@struct.dataclass
+class InitiationClassifiers:
+    """One option's classifiers over ``num_pos + num_neg`` padded training slots.
+
+    optimistic / pessimistic: SVMModel (identical in the single variant).
+    optimistic_fitted / pessimistic_fitted: () bool; an unfitted model contains nothing.
+    """
+
+    optimistic: SVMModel
+    pessimistic: SVMModel
+    optimistic_fitted: jax.Array
+    pessimistic_fitted: jax.Array
+
+
+def _empty_model(n: int, dim: int, gamma: float) -> SVMModel:
+    return SVMModel(
+        support=jnp.zeros((n, dim), jnp.float32),
+        coef=jnp.zeros((n,), jnp.float32),
+        rho=jnp.ones((), jnp.float32),
+        gamma=jnp.asarray(gamma, jnp.float32),
+        mask=jnp.zeros((n,), bool),
+        one_class=jnp.zeros((), bool),
+        converged=jnp.ones((), bool),
+        n_iter=jnp.zeros((), jnp.int32),
+        gap=jnp.zeros((), jnp.float32),
+    )
+
+
+def empty_initiation(num_pos: int, num_neg: int, dim: int = 2, gamma: float = 0.5) -> InitiationClassifiers:
+    """Unfitted classifiers with the shapes ``fit_initiation`` returns for these slot counts."""
+    if num_pos < 1 or num_neg < 0:
+        raise ValueError(f"need num_pos >= 1 and num_neg >= 0, got {num_pos}, {num_neg}")
+    m = _empty_model(num_pos + num_neg, dim, gamma)
+    f = jnp.zeros((), bool)
+    return InitiationClassifiers(optimistic=m, pessimistic=m, optimistic_fitted=f, pessimistic_fitted=f)
+
+
+def _select(flag, a, b):
+    """Pytree-wise where(flag, a, b) for a scalar (traced) flag."""
+    return jax.tree.map(lambda x, y: jnp.where(flag, x, y), a, b)
+
+
+def _check_inputs(pos_xy, pos_mask, neg_xy, neg_mask):
+    if getattr(pos_xy, "ndim", None) != 2 or getattr(neg_xy, "ndim", None) != 2:
+        raise ValueError(
+            f"pos_xy and neg_xy must be (n, d) arrays, got {getattr(pos_xy, 'shape', None)} and "
+            f"{getattr(neg_xy, 'shape', None)} (use fit_initiation_batch for a batch of options)"
+        )
+    if pos_xy.shape[1] != neg_xy.shape[1]:
+        raise ValueError(f"pos_xy and neg_xy need the same feature size, got {pos_xy.shape} and {neg_xy.shape}")
+    if pos_xy.shape[0] < 1:
+        raise ValueError("pos_xy needs at least one slot")
+    if getattr(pos_mask, "shape", None) != pos_xy.shape[:1]:
+        raise ValueError(f"pos_mask must have shape {pos_xy.shape[:1]}, got {getattr(pos_mask, 'shape', None)}")
+    if getattr(neg_mask, "shape", None) != neg_xy.shape[:1]:
+        raise ValueError(f"neg_mask must have shape {neg_xy.shape[:1]}, got {getattr(neg_mask, 'shape', None)}")
+
+
+@functools.partial(jax.jit, static_argnames=("cfg", "inner"))
+def _fit(pos_xy, pos_mask, neg_xy, neg_mask, prev: InitiationClassifiers, cfg: InitiationConfig,
+         inner: int) -> InitiationClassifiers:
+    X = jnp.concatenate([pos_xy, neg_xy], axis=0).astype(jnp.float32)
+    pos_mask = pos_mask.astype(bool)
+    neg_mask = neg_mask.astype(bool)
+    labels = jnp.concatenate([jnp.ones_like(pos_mask, jnp.int32), jnp.zeros_like(neg_mask, jnp.int32)])
+    pos_slots = jnp.concatenate([pos_mask, jnp.zeros_like(neg_mask)])
+    all_slots = jnp.concatenate([pos_mask, neg_mask])
+    has_pos = jnp.any(pos_mask)
+    has_neg = jnp.any(neg_mask)
+    two_class = has_pos & has_neg
+    balanced = jnp.sum(neg_mask) >= cfg.balanced_min_negatives
+    max_iter = svm._check_max_iter(cfg.max_iter, X.shape[0])
+    gamma = jnp.float32(cfg.gamma)
+    tol = jnp.float32(cfg.tol)
+
+    # first model: SVC with negatives, else one-class on the positives (one SMO run either way)
+    nu_first = cfg.nu_optimistic if cfg.variant == "dual" else cfg.nu_single
+    svc = svm._svc_problem(labels, all_slots, jnp.float32(cfg.C), balanced)
+    occ = svm._one_class_problem(X, pos_slots, jnp.float32(nu_first), gamma)
+    problem = tuple(jnp.where(two_class, a, b) for a, b in zip(svc, occ))
+    first_mask = jnp.where(two_class, all_slots, pos_slots)
+    first = svm._fit_problem(X, first_mask, problem, ~two_class, gamma, tol, max_iter, inner)
+    opt = _select(has_pos, first, prev.optimistic)
+    opt_fitted = has_pos | prev.optimistic_fitted
+
+    if cfg.variant == "single":
+        return InitiationClassifiers(optimistic=opt, pessimistic=opt, optimistic_fitted=opt_fitted,
+                                     pessimistic_fitted=opt_fitted)
+
+    # pessimistic: one-class ν on the positives the SVC calls positive (all positives without SVC)
+    called_pos = svm.predict(first, X)
+    pes_slots = pos_slots & jnp.where(two_class, called_pos, True)
+    any_pes = jnp.any(pes_slots)
+    pes_problem = svm._one_class_problem(X, pes_slots, jnp.float32(cfg.nu_pessimistic), gamma)
+    pes_new = svm._fit_problem(X, pes_slots, pes_problem, True, gamma, tol, max_iter, inner)
+    pes = _select(any_pes, pes_new, prev.pessimistic)
+    return InitiationClassifiers(optimistic=opt, pessimistic=pes, optimistic_fitted=opt_fitted,
+                                 pessimistic_fitted=any_pes | prev.pessimistic_fitted)
+
+
+def fit_initiation(pos_xy, pos_mask, neg_xy, neg_mask, cfg: InitiationConfig = InitiationConfig(),
+                   prev: InitiationClassifiers | None = None, *, _inner: int | None = None
+                   ) -> InitiationClassifiers:
+    """Refit one option's classifiers.
+
+    pos_xy (P, d), pos_mask (P,), neg_xy (M, d), neg_mask (M,): padded examples + validity.
+    prev: the option's current classifiers (kept where a model cannot be refit: no positives, or
+    no positive the SVC calls positive); None = unfitted. Jit-able; no retrace across counts.
+    """
+    _check_inputs(pos_xy, pos_mask, neg_xy, neg_mask)
+    if prev is None:
+        prev = empty_initiation(pos_xy.shape[0], neg_xy.shape[0], pos_xy.shape[1], cfg.gamma)
+    return _fit(pos_xy, pos_mask, neg_xy, neg_mask, prev, cfg=cfg, inner=svm._resolve_inner(_inner))
+
+
+def fit_initiation_batch(pos_xy, pos_mask, neg_xy, neg_mask, cfg: InitiationConfig = InitiationConfig(),
+                         prev: InitiationClassifiers | None = None, dirty=None, *,
+                         _inner: int | None = None) -> InitiationClassifiers:
+    """Refit a batch of K options at once (vmapped SMO; each option stops on its own).
+
+    pos_xy (K, P, d), pos_mask (K, P), neg_xy (K, M, d), neg_mask (K, M); prev: batched
+    classifiers (leading K) or None; dirty: (K,) bool, options to refit (others keep ``prev``
+    and cost no SMO steps). Returns batched InitiationClassifiers.
+    """
+    if getattr(pos_xy, "ndim", None) != 3 or getattr(neg_xy, "ndim", None) != 3:
+        raise ValueError(f"batched pos_xy / neg_xy must be (K, n, d), got {getattr(pos_xy, 'shape', None)} "
+                         f"and {getattr(neg_xy, 'shape', None)}")
+    K = pos_xy.shape[0]
+    if neg_xy.shape[0] != K:
+        raise ValueError(f"pos_xy and neg_xy need the same number of options, got {K} and {neg_xy.shape[0]}")
+    _check_inputs(pos_xy[0], pos_mask[0] if getattr(pos_mask, "ndim", 0) == 2 else pos_mask,
+                  neg_xy[0], neg_mask[0] if getattr(neg_mask, "ndim", 0) == 2 else neg_mask)
+    if pos_mask.shape != pos_xy.shape[:2] or neg_mask.shape != neg_xy.shape[:2]:
+        raise ValueError(f"masks must have shapes {pos_xy.shape[:2]} and {neg_xy.shape[:2]}, "
+                         f"got {pos_mask.shape} and {neg_mask.shape}")
+    if prev is None:
+        one = empty_initiation(pos_xy.shape[1], neg_xy.shape[1], pos_xy.shape[2], cfg.gamma)
+        prev = jax.tree.map(lambda x: jnp.broadcast_to(x, (K,) + x.shape), one)
+    if dirty is None:
+        dirty = jnp.ones((K,), bool)
+    else:
+        dirty = jnp.asarray(dirty, bool)
+        if dirty.shape != (K,):
+            raise ValueError(f"dirty must have shape ({K},), got {dirty.shape}")
+
+    return _fit_batch(pos_xy, pos_mask, neg_xy, neg_mask, prev, dirty, cfg=cfg, inner=svm._resolve_inner(_inner))
+
+
+@functools.partial(jax.jit, static_argnames=("cfg", "inner"))
+def _fit_batch(pos_xy, pos_mask, neg_xy, neg_mask, prev, dirty, cfg, inner):
+    def one(p, pm, n, nm, pr, d):
+        new = _fit(p, pm & d, n, nm & d, pr, cfg=cfg, inner=inner)  # clean options: 0 SMO steps
+        return _select(d, new, pr)
+
+    return jax.vmap(one)(pos_xy, pos_mask.astype(bool), neg_xy, neg_mask.astype(bool), prev, dirty)
+
+
+def optimistic_contains(clf: InitiationClassifiers, xy) -> jax.Array:
+    """xy (..., d) inside the optimistic model (False when unfitted)."""
+    return clf.optimistic_fitted & svm.predict(clf.optimistic, xy)
+
+
+def pessimistic_contains(clf: InitiationClassifiers, xy) -> jax.Array:
+    """xy (..., d) inside the pessimistic model, the region other options target."""
+    return clf.pessimistic_fitted & svm.predict(clf.pessimistic, xy)
+
+
+def initiation_contains(clf: InitiationClassifiers, xy) -> jax.Array:
+    """Initiation test: optimistic OR pessimistic (the single variant's one classifier)."""
+    return optimistic_contains(clf, xy) | pessimistic_contains(clf, xy)
