@@ -1,0 +1,500 @@
+"""The skill chain: a fixed-capacity option table that lives on the device.
+
+Rows of the table (``K = ChainConfig.max_options``):
+
+- row 0, the *global option*: initiation everywhere, targets the task goal. It only keeps success /
+  execution counters: it stores no examples and never gets classifiers (its initiation set is the
+  whole state space by definition, and no option targets it).
+- row 1, the *goal option*: targets the task goal; the first link of the chain.
+- rows 2.., chain links in creation order. Row ``k`` targets its parent (``parent[k] = k - 1``): it
+  terminates inside the parent's pessimistic initiation region. Because links are created one at a
+  time, a parent always has a smaller index than its child, so "walk the chain from the goal option
+  outward" is "walk the rows in increasing index".
+
+Each row has a status (``FREE``, ``GESTATION``, ``MATURE``; the global option is ``ALWAYS``),
+success / execution counters, a ring of positive trajectories (start state + the last
+``buffer_len`` visited xy positions of a successful execution, with a validity mask), a ring of
+negative start states (failed executions), its fitted initiation classifiers (from
+:mod:`dscpp_jax.initiation`, stacked over rows), and a cache used by robust subgoal sampling (which
+stored positive states lie, with their +-0.6 neighbourhood, inside the row's own pessimistic
+region; refreshed by :func:`refit`).
+
+Per environment step (inside ``lax.scan``, vmapped over envs where noted)::
+
+    o     = select_option(chain, xy)                      # vmap over envs; int32
+    g     = subgoals.robust_subgoal(key, chain, o)        # or subgoals.pick_subgoal(...)
+    done  = option_terminates(chain, o, xy, goal)         # vmap over envs
+    ok    = local_success(chain, o, xy, g)                # vmap over envs
+    chain = record_outcomes(chain, o_ids, ok, start_xy, traj_xy, traj_mask, ended)  # batched
+
+Per learning iteration: ``chain = refit(chain)``, then ``chain = grow_chain(chain, env.start)``,
+then (DP subgoals only) ``table = subgoals.dp_value_table(chain, value_fn)``.
+
+All functions are pure, jit-able and shape-stable; the config is a static field of :class:`Chain`.
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any, Optional
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+FREE = 0
+GESTATION = 1
+MATURE = 2
+ALWAYS = 3  # status of the global option
+
+GLOBAL = 0
+GOAL = 1
+
+VARIANTS = ("dual", "single")
+
+
+@dataclass(frozen=True)
+class ChainConfig:
+    """Static sizes and constants of the skill chain (frozen, hashable: a jit static)."""
+
+    max_options: int = 12        # capacity K, including the global and the goal option
+    gestation: int = 10          # successes before an option is mature
+    buffer_len: int = 50         # positions kept after the start state of a positive trajectory
+    option_timeout: int = 200    # steps before an execution counts as a failure (used by callers)
+    max_pos_traj: int = 100      # positive trajectories kept per option (ring)
+    max_neg: int = 100           # negative start states kept per option (ring)
+    variant: str = "dual"        # "dual" (optimistic + pessimistic) | "single" (baseline DSC)
+    goal_tolerance: float = 0.6  # radius of the task goal region
+    subgoal_tolerance: float = 0.6  # radius of a sampled subgoal; also the robust neighbourhood
+    obs_dim: int = 2             # size of the stored start observation of each positive trajectory
+    svm_gamma: float = 0.5       # RBF gamma ("auto" for x, y features)
+    svm_C: float = 1.0
+    nu_pessimistic: float = 0.1
+    nu_optimistic: float = 0.01
+    balanced_min_neg: int = 10   # class_weight "balanced" from this many negatives on
+    svm_tol: float = 1e-3
+    svm_max_iter: Optional[int] = None
+
+    def __post_init__(self):
+        def need(ok, msg):
+            if not ok:
+                raise ValueError(f"ChainConfig: {msg}")
+
+        need(self.max_options >= 3, f"max_options={self.max_options} must be >= 3 (global option, "
+             "goal option and at least one chain link)")
+        need(self.gestation >= 1, f"gestation={self.gestation} must be >= 1")
+        need(self.buffer_len >= 1, f"buffer_len={self.buffer_len} must be >= 1")
+        need(self.option_timeout >= 1, f"option_timeout={self.option_timeout} must be >= 1")
+        need(self.max_pos_traj >= 1, f"max_pos_traj={self.max_pos_traj} must be >= 1")
+        need(self.max_neg >= 1, f"max_neg={self.max_neg} must be >= 1")
+        need(self.variant in VARIANTS, f"variant={self.variant!r} must be one of {VARIANTS}")
+        need(self.goal_tolerance > 0, "goal_tolerance must be > 0")
+        need(self.subgoal_tolerance > 0, "subgoal_tolerance must be > 0")
+        need(self.obs_dim >= 2, f"obs_dim={self.obs_dim} must be >= 2 (xy = obs[:2])")
+        need(self.svm_gamma > 0, "svm_gamma must be > 0")
+        need(0 < self.nu_pessimistic <= 1 and 0 < self.nu_optimistic <= 1, "nu must be in (0, 1]")
+
+    @property
+    def traj_len(self) -> int:
+        """Stored states per positive trajectory: the start state + ``buffer_len`` positions."""
+        return self.buffer_len + 1
+
+    def replace(self, **kw: Any) -> "ChainConfig":
+        return dataclasses.replace(self, **kw)
+
+
+@struct.dataclass
+class Chain:
+    """The option table. Shapes: K options, P = max_pos_traj, L = buffer_len + 1, N = max_neg,
+    D = obs_dim."""
+
+    cfg: ChainConfig = struct.field(pytree_node=False)
+    goal_xy: jax.Array          # (2,) task goal
+    status: jax.Array           # (K,) int32: FREE / GESTATION / MATURE / ALWAYS
+    parent: jax.Array           # (K,) int32, -1 for the global and the goal option and free rows
+    successes: jax.Array        # (K,) int32 successful executions (training only)
+    executions: jax.Array       # (K,) int32 executions
+    pos_xy: jax.Array           # (K, P, L, 2) positive trajectories: [:, :, 0] = start state
+    pos_mask: jax.Array         # (K, P, L) bool; [:, :, 0] = the trajectory slot is valid
+    pos_obs: jax.Array          # (K, P, D) start observation of each positive trajectory
+    pos_count: jax.Array        # (K,) int32 positive trajectories ever written (ring head)
+    neg_xy: jax.Array           # (K, N, 2) failed start states
+    neg_mask: jax.Array         # (K, N) bool
+    neg_count: jax.Array        # (K,) int32 negatives ever written
+    clf: Any                    # initiation classifiers stacked over K (dscpp_jax.initiation)
+    fitted: jax.Array           # (K,) bool: clf row holds a fitted classifier
+    dirty: jax.Array            # (K,) bool: new examples since the last refit
+    pess_ok: jax.Array          # (K, P, L) bool: positive state inside the row's pessimistic region
+    robust_ok: jax.Array        # (K, P, L) bool: ... and its +-tol neighbourhood too
+    num_options: jax.Array      # () int32 rows in use (global + goal + links)
+    capacity_hit: jax.Array     # () bool: a new option was needed but the table was full
+
+    @property
+    def active(self) -> jax.Array:
+        """(K,) bool rows in use."""
+        return self.status != FREE
+
+
+# ------------------------------------------------------------------------------------------------
+# Classifier adapter (the only place that touches dscpp_jax.initiation)
+# ------------------------------------------------------------------------------------------------
+
+def _initiation():
+    from . import initiation  # imported lazily: a light import for users of the queries only
+
+    return initiation
+
+
+def initiation_config(cfg: ChainConfig):
+    """The :class:`dscpp_jax.initiation.InitiationConfig` matching a chain config."""
+    return _initiation().InitiationConfig(
+        variant=cfg.variant, gamma=cfg.svm_gamma, C=cfg.svm_C, nu_pessimistic=cfg.nu_pessimistic,
+        nu_optimistic=cfg.nu_optimistic, nu_single=cfg.nu_pessimistic,
+        balanced_min_negatives=cfg.balanced_min_neg, tol=cfg.svm_tol, max_iter=cfg.svm_max_iter)
+
+
+def _empty_classifiers(cfg: ChainConfig):
+    """Unfitted classifiers over P * L positive + N negative slots, stacked over K rows."""
+    one = _initiation().empty_initiation(cfg.max_pos_traj * cfg.traj_len, cfg.max_neg, 2,
+                                         cfg.svm_gamma)
+    return jax.tree_util.tree_map(
+        lambda x: jnp.broadcast_to(x, (cfg.max_options,) + x.shape), one)
+
+
+def _fitted_flags(clf):
+    return clf.optimistic_fitted | clf.pessimistic_fitted
+
+
+def _row(tree, k):
+    return jax.tree_util.tree_map(lambda a: a[k], tree)
+
+
+# ------------------------------------------------------------------------------------------------
+# Construction and queries
+# ------------------------------------------------------------------------------------------------
+
+def chain_init(cfg: ChainConfig, goal_xy) -> Chain:
+    """A chain with the global option (row 0) and the goal option (row 1, in gestation)."""
+    if not isinstance(cfg, ChainConfig):
+        raise ValueError(f"chain_init: cfg must be a ChainConfig, got {type(cfg).__name__}")
+    goal_xy = jnp.asarray(goal_xy, jnp.float32)
+    if goal_xy.shape != (2,):
+        raise ValueError(f"chain_init: goal_xy must have shape (2,), got {goal_xy.shape}")
+    K, P, L, N, D = cfg.max_options, cfg.max_pos_traj, cfg.traj_len, cfg.max_neg, cfg.obs_dim
+    status = jnp.full((K,), FREE, jnp.int32).at[GLOBAL].set(ALWAYS).at[GOAL].set(GESTATION)
+    zi = jnp.zeros((K,), jnp.int32)
+    return Chain(
+        cfg=cfg, goal_xy=goal_xy, status=status, parent=jnp.full((K,), -1, jnp.int32),
+        successes=zi, executions=zi,
+        pos_xy=jnp.zeros((K, P, L, 2), jnp.float32), pos_mask=jnp.zeros((K, P, L), bool),
+        pos_obs=jnp.zeros((K, P, D), jnp.float32), pos_count=zi,
+        neg_xy=jnp.zeros((K, N, 2), jnp.float32), neg_mask=jnp.zeros((K, N), bool), neg_count=zi,
+        clf=_empty_classifiers(cfg), fitted=jnp.zeros((K,), bool), dirty=jnp.zeros((K,), bool),
+        pess_ok=jnp.zeros((K, P, L), bool), robust_ok=jnp.zeros((K, P, L), bool),
+        num_options=jnp.asarray(2, jnp.int32), capacity_hit=jnp.asarray(False))
+
+
+def _near(a, b, tol):
+    return jnp.sum((a - b) ** 2, axis=-1) <= tol * tol
+
+
+def _classify_all(chain: Chain, xy):
+    """(K,) initiation and (K,) pessimistic decisions of every row's classifiers at xy (2,),
+    False for rows without a fitted classifier."""
+    ini = _initiation()
+    xy = jnp.asarray(xy, jnp.float32)
+    opt = jax.vmap(lambda c: ini.optimistic_contains(c, xy))(chain.clf)
+    pess = jax.vmap(lambda c: ini.pessimistic_contains(c, xy))(chain.clf)
+    return (opt | pess) & chain.fitted, pess & chain.fitted
+
+
+def can_initiate(chain: Chain, xy) -> jax.Array:
+    """(K,) bool: which options may start at xy (2,). The global option and options in gestation
+    always; mature options where optimistic OR pessimistic holds; free rows never."""
+    ini, _ = _classify_all(chain, xy)
+    return (chain.status == ALWAYS) | (chain.status == GESTATION) | ((chain.status == MATURE) & ini)
+
+
+def in_termination_region(chain: Chain, xy, task_goal=None) -> jax.Array:
+    """(K,) bool: option_terminates for every row at xy (2,) (one classifier pass)."""
+    goal = chain.goal_xy if task_goal is None else jnp.asarray(task_goal, jnp.float32)
+    _, pess = _classify_all(chain, xy)
+    at_goal = _near(jnp.asarray(xy, jnp.float32), goal, chain.cfg.goal_tolerance)
+    idx = jnp.arange(chain.cfg.max_options)
+    par = jnp.clip(chain.parent, 0)
+    by_parent = pess[par] & (chain.parent >= 0)
+    return jnp.where(idx <= GOAL, at_goal, by_parent) & chain.active
+
+
+def option_terminates(chain: Chain, o, xy, task_goal=None) -> jax.Array:
+    """bool: option o (int) terminates at xy (2,). Global and goal option: within goal_tolerance
+    of the task goal (default ``chain.goal_xy``); chain links: inside the parent's pessimistic
+    region."""
+    goal = chain.goal_xy if task_goal is None else jnp.asarray(task_goal, jnp.float32)
+    xy = jnp.asarray(xy, jnp.float32)
+    o = jnp.asarray(o, jnp.int32)
+    p = chain.parent[o]
+    pc = jnp.clip(p, 0)
+    in_parent = _initiation().pessimistic_contains(_row(chain.clf, pc), xy) & chain.fitted[pc] & (p >= 0)
+    at_goal = _near(xy, goal, chain.cfg.goal_tolerance)
+    return jnp.where(o <= GOAL, at_goal, in_parent)
+
+
+def local_success(chain: Chain, o, xy, subgoal, task_goal=None) -> jax.Array:
+    """bool: the option's execution succeeded at xy: within subgoal_tolerance of its subgoal AND in
+    its termination region (the original's ``is_at_local_goal``)."""
+    xy = jnp.asarray(xy, jnp.float32)
+    near = _near(xy, jnp.asarray(subgoal, jnp.float32), chain.cfg.subgoal_tolerance)
+    return near & option_terminates(chain, o, xy, task_goal)
+
+
+def select_option(chain: Chain, xy, at_subgoal=None) -> jax.Array:
+    """The policy over options at xy (2,): walk the chain from the goal option outward and take
+    the first option that can initiate and is not already done; else the global option (0).
+
+    ``at_subgoal`` (optional, (K,) bool) says which options count as already done (e.g. computed
+    with :func:`local_success` against freshly sampled subgoals, as the original did); by default an
+    option is done where it already terminates (:func:`in_termination_region`). Returns int32.
+    """
+    K = chain.cfg.max_options
+    ini, pess = _classify_all(chain, xy)
+    init = (chain.status == GESTATION) | ((chain.status == MATURE) & ini)
+    if at_subgoal is None:
+        goal = chain.goal_xy
+        at_goal = _near(jnp.asarray(xy, jnp.float32), goal, chain.cfg.goal_tolerance)
+        par = jnp.clip(chain.parent, 0)
+        at_subgoal = jnp.where(jnp.arange(K) <= GOAL, at_goal, pess[par] & (chain.parent >= 0))
+    else:
+        at_subgoal = jnp.asarray(at_subgoal, bool)
+        if at_subgoal.shape != (K,):
+            raise ValueError(f"select_option: at_subgoal must have shape ({K},), got "
+                             f"{at_subgoal.shape}")
+    cand = init & ~at_subgoal & (jnp.arange(K) >= GOAL)
+    return jnp.where(cand.any(), jnp.argmax(cand), GLOBAL).astype(jnp.int32)
+
+
+# ------------------------------------------------------------------------------------------------
+# Recording outcomes (batched over envs)
+# ------------------------------------------------------------------------------------------------
+
+def _ranks(onehot):
+    """Per event: rank among earlier events of the same option (exclusive cumsum), and the total
+    number of events per option. onehot: (B, K) bool."""
+    c = jnp.cumsum(onehot.astype(jnp.int32), axis=0)
+    rank = jnp.sum((c - 1) * onehot, axis=1)
+    return rank, c[-1]
+
+
+def record_outcomes(chain: Chain, option_ids, success, start_xy, traj_xy, traj_mask, event_mask,
+                    start_obs=None) -> Chain:
+    """Record the option executions that ended this step in B envs (several may end the same option).
+
+    Args:
+      option_ids: (B,) int32 option that ended in each env (ignored where ``event_mask`` is False).
+      success: (B,) bool local success of that execution.
+      start_xy: (B, 2) xy where the execution started.
+      traj_xy: (B, buffer_len, 2) the last ``buffer_len`` visited positions, oldest first.
+      traj_mask: (B, buffer_len) bool valid positions (executions shorter than buffer_len).
+      event_mask: (B,) bool an execution ended in this env.
+      start_obs: (B, obs_dim) start observation (for the DP value table); may be omitted when
+        ``obs_dim == 2`` (then ``start_xy`` is stored).
+
+    Every event bumps the option's execution counter; a success also bumps its success counter and
+    (except for the global option) writes start + trajectory as one positive trajectory; a failure
+    writes its start state as a negative (except for the global option). Events are applied in env
+    order, exactly as if recorded one by one; rows that got examples are marked dirty. Events for
+    free rows or out-of-range ids are ignored.
+    """
+    cfg = chain.cfg
+    K, P, L, N, D, T = (cfg.max_options, cfg.max_pos_traj, cfg.traj_len, cfg.max_neg, cfg.obs_dim,
+                        cfg.buffer_len)
+    option_ids = jnp.asarray(option_ids, jnp.int32)
+    B = option_ids.shape[0] if option_ids.ndim == 1 else -1
+    if option_ids.ndim != 1:
+        raise ValueError(f"record_outcomes: option_ids must have shape (B,), got {option_ids.shape}")
+    start_xy = jnp.asarray(start_xy, jnp.float32)
+    traj_xy = jnp.asarray(traj_xy, jnp.float32)
+    traj_mask = jnp.asarray(traj_mask, bool)
+    want = {"success": (B,), "start_xy": (B, 2), "traj_xy": (B, T, 2), "traj_mask": (B, T),
+            "event_mask": (B,)}
+    got = {"success": jnp.shape(success), "start_xy": start_xy.shape, "traj_xy": traj_xy.shape,
+           "traj_mask": traj_mask.shape, "event_mask": jnp.shape(event_mask)}
+    for name, shape in want.items():
+        if tuple(got[name]) != shape:
+            raise ValueError(f"record_outcomes: {name} must have shape {shape} (B={B}, "
+                             f"buffer_len={T}), got {tuple(got[name])}")
+    if start_obs is None:
+        if D != 2:
+            raise ValueError(f"record_outcomes: start_obs (B, {D}) is required when "
+                             f"ChainConfig.obs_dim={D} != 2")
+        start_obs = start_xy
+    start_obs = jnp.asarray(start_obs, jnp.float32)
+    if start_obs.shape != (B, D):
+        raise ValueError(f"record_outcomes: start_obs must have shape ({B}, {D}), got "
+                         f"{start_obs.shape}")
+    success = jnp.asarray(success, bool)
+    in_range = (option_ids >= 0) & (option_ids < K)
+    oid = jnp.clip(option_ids, 0, K - 1)
+    ev = jnp.asarray(event_mask, bool) & in_range & (chain.status[oid] != FREE)
+    learns = ev & (oid != GLOBAL)
+    onehot_k = jax.nn.one_hot(oid, K, dtype=jnp.int32)
+    executions = chain.executions + jnp.sum(onehot_k * ev[:, None], axis=0)
+    successes = chain.successes + jnp.sum(onehot_k * (ev & success)[:, None], axis=0)
+
+    # positives: start + last buffer_len positions
+    is_pos = learns & success
+    oh = (onehot_k > 0) & is_pos[:, None]
+    rank, n_new = _ranks(oh)
+    keep = is_pos & (rank >= n_new[oid] - P)            # only the last P of a burst survive
+    slot = (chain.pos_count[oid] + rank) % P
+    row = jnp.where(keep, oid, K)                       # K = out of bounds -> dropped
+    traj = jnp.concatenate([start_xy[:, None, :], traj_xy], axis=1)          # (B, L, 2)
+    tmask = jnp.concatenate([jnp.ones((B, 1), bool), traj_mask], axis=1)     # (B, L)
+    pos_xy = chain.pos_xy.at[row, slot].set(traj, mode="drop")
+    pos_mask = chain.pos_mask.at[row, slot].set(tmask, mode="drop")
+    pos_obs = chain.pos_obs.at[row, slot].set(start_obs, mode="drop")
+    pess_ok = chain.pess_ok.at[row, slot].set(False, mode="drop")      # stale until the next refit
+    robust_ok = chain.robust_ok.at[row, slot].set(False, mode="drop")
+    pos_count = chain.pos_count + n_new
+
+    # negatives: the start state of a failed execution
+    is_neg = learns & ~success
+    ohn = (onehot_k > 0) & is_neg[:, None]
+    rank_n, n_neg = _ranks(ohn)
+    keep_n = is_neg & (rank_n >= n_neg[oid] - N)
+    slot_n = (chain.neg_count[oid] + rank_n) % N
+    row_n = jnp.where(keep_n, oid, K)
+    neg_xy = chain.neg_xy.at[row_n, slot_n].set(start_xy, mode="drop")
+    neg_mask = chain.neg_mask.at[row_n, slot_n].set(True, mode="drop")
+    neg_count = chain.neg_count + n_neg
+
+    dirty = chain.dirty | (jnp.sum(onehot_k * learns[:, None], axis=0) > 0)
+    return chain.replace(executions=executions, successes=successes, pos_xy=pos_xy,
+                         pos_mask=pos_mask, pos_obs=pos_obs, pos_count=pos_count, neg_xy=neg_xy,
+                         neg_mask=neg_mask, neg_count=neg_count, dirty=dirty, pess_ok=pess_ok,
+                         robust_ok=robust_ok)
+
+
+def ring_to_chronological(ring, head, count):
+    """Unroll a per-env ring of positions into the oldest-first layout record_outcomes expects.
+
+    ring: (T, 2) positions, head: int index of the next write, count: int positions written so far.
+    Returns ((T, 2) oldest first, (T,) bool valid). vmap over envs.
+    """
+    T = ring.shape[0]
+    idx = (jnp.asarray(head) + jnp.arange(T)) % T
+    n = jnp.minimum(jnp.asarray(count), T)
+    return ring[idx], jnp.arange(T) >= T - n
+
+
+# ------------------------------------------------------------------------------------------------
+# Refitting classifiers and the robust-sampling cache
+# ------------------------------------------------------------------------------------------------
+
+def refresh_subgoal_cache(chain: Chain, mask=None) -> Chain:
+    """Recompute, for rows in ``mask`` (default: all fitted rows), which stored positive states
+    lie in the row's own pessimistic region (``pess_ok``) and which also have their four
+    neighbours xy +- subgoal_tolerance along each axis inside it (``robust_ok``)."""
+    cfg = chain.cfg
+    K, P, L = cfg.max_options, cfg.max_pos_traj, cfg.traj_len
+    mask = chain.fitted if mask is None else jnp.asarray(mask, bool) & chain.fitted
+    r = cfg.subgoal_tolerance
+    shifts = jnp.array([[0.0, 0.0], [r, 0.0], [-r, 0.0], [0.0, r], [0.0, -r]], jnp.float32)
+    pts = chain.pos_xy[:, :, :, None, :] + shifts                            # (K, P, L, 5, 2)
+    pess = _initiation().pessimistic_contains
+    inside = jax.vmap(pess)(chain.clf, pts.reshape(K, P * L * 5, 2)).reshape(K, P, L, 5)
+    inside = inside & chain.pos_mask[..., None] & chain.fitted[:, None, None, None]
+    pess_ok = jnp.where(mask[:, None, None], inside[..., 0], chain.pess_ok)
+    robust_ok = jnp.where(mask[:, None, None], inside.all(-1), chain.robust_ok)
+    return chain.replace(pess_ok=pess_ok, robust_ok=robust_ok)
+
+
+def refit(chain: Chain, mask=None) -> Chain:
+    """Refit the initiation classifiers of the rows in ``mask`` (default: ``chain.dirty``), vmapped
+    over all K rows (rows outside the mask see no data and keep their classifiers). Only rows in
+    use, other than the global option, with at least one positive trajectory are fitted. Clears
+    their dirty flags and refreshes their robust-sampling cache."""
+    cfg = chain.cfg
+    K, P, L = cfg.max_options, cfg.max_pos_traj, cfg.traj_len
+    mask = chain.dirty if mask is None else jnp.asarray(mask, bool)
+    if mask.shape != (K,):
+        raise ValueError(f"refit: mask must have shape ({K},), got {mask.shape}")
+    has_pos = chain.pos_mask[:, :, 0].any(axis=1)
+    do = mask & chain.active & (jnp.arange(K) != GLOBAL) & has_pos
+    clf = _initiation().fit_initiation_batch(
+        chain.pos_xy.reshape(K, P * L, 2), chain.pos_mask.reshape(K, P * L), chain.neg_xy,
+        chain.neg_mask, initiation_config(cfg), prev=chain.clf, dirty=do)
+    chain = chain.replace(clf=clf, fitted=_fitted_flags(clf), dirty=chain.dirty & ~mask)
+    return refresh_subgoal_cache(chain, do)
+
+
+# ------------------------------------------------------------------------------------------------
+# Growing the chain and chain-level metrics
+# ------------------------------------------------------------------------------------------------
+
+def start_covered(chain: Chain, start_xy) -> jax.Array:
+    """bool: some mature option's initiation set (optimistic OR pessimistic) holds start_xy."""
+    ini, _ = _classify_all(chain, start_xy)
+    return jnp.any(ini & (chain.status == MATURE))
+
+
+def grow_chain(chain: Chain, start_xy) -> Chain:
+    """Maturity, then chain growth (call after :func:`refit`, once per learning iteration).
+
+    1. Options in gestation with at least ``gestation`` successes become mature.
+    2. If no option is in gestation, the newest mature option has fitted classifiers, and no mature
+       option's initiation set holds ``start_xy`` (pass the env's start state, ``env.start``), a
+       new option is created in the next free row, in gestation, whose parent is the newest mature
+       option. When the table is full, ``capacity_hit`` is set instead (sticky).
+    """
+    cfg = chain.cfg
+    K = cfg.max_options
+    start_xy = jnp.asarray(start_xy, jnp.float32)
+    if start_xy.shape != (2,):
+        raise ValueError(f"grow_chain: start_xy must have shape (2,), got {start_xy.shape}")
+    idx = jnp.arange(K)
+    matured = (chain.status == GESTATION) & (chain.successes >= cfg.gestation)
+    status = jnp.where(matured, MATURE, chain.status)
+    chain = chain.replace(status=status)
+    mature = status == MATURE
+    newest = jnp.max(jnp.where(mature, idx, -1))
+    newest_c = jnp.clip(newest, 0)
+    want = ((~jnp.any(status == GESTATION)) & (newest >= 0) & chain.fitted[newest_c]
+            & ~start_covered(chain, start_xy))
+    n = chain.num_options
+    room = n < K
+    create = want & room
+    slot = jnp.where(create, n, K)                      # K: out of bounds -> no write
+    status = status.at[slot].set(GESTATION, mode="drop")
+    parent = chain.parent.at[slot].set(newest, mode="drop")
+    return chain.replace(status=status, parent=parent, num_options=n + create.astype(jnp.int32),
+                         capacity_hit=chain.capacity_hit | (want & ~room))
+
+
+def success_rates(chain: Chain) -> jax.Array:
+    """(K,) successes / executions per row (0 where never executed)."""
+    ex = chain.executions
+    return jnp.where(ex > 0, chain.successes / jnp.maximum(ex, 1), 0.0).astype(jnp.float32)
+
+
+def chain_probability(chain: Chain) -> jax.Array:
+    """Paper eq. 3: product over the chain (goal option and links in use, not the global option)
+    of each option's successes / executions; an option never executed contributes 0."""
+    in_chain = chain.active & (jnp.arange(chain.cfg.max_options) != GLOBAL)
+    return jnp.prod(jnp.where(in_chain, success_rates(chain), 1.0))
+
+
+def chain_metrics(chain: Chain, start_xy=None) -> dict:
+    """Scalars for logging under ``options/...`` (reduced on the device)."""
+    m = {
+        "num_options": chain.num_options,
+        "num_mature": jnp.sum(chain.status == MATURE),
+        "num_gestation": jnp.sum(chain.status == GESTATION),
+        "chain_probability": chain_probability(chain),
+        "capacity_hit": chain.capacity_hit.astype(jnp.int32),
+        "global_success_rate": success_rates(chain)[GLOBAL],
+        "goal_success_rate": success_rates(chain)[GOAL],
+    }
+    if start_xy is not None:
+        m["start_covered"] = start_covered(chain, start_xy).astype(jnp.int32)
+    return m
