@@ -1,0 +1,220 @@
+"""Random-shooting MPC: eq. 2 cost against NumPy, rollouts against a NumPy MLP, the fused kernel
+(interpreted on the CPU) against the XLA path, and goal reaching on the point mass."""
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import envs
+from dscpp_jax.dynamics import DynamicsConfig, dynamics_fit_normaliser, dynamics_init, dynamics_train
+from dscpp_jax.mpc import (MPCConfig, mpc_action, mpc_actions, mpc_cost, sample_action_sequences,
+                           sequence_costs, shooting_actions)
+
+TOL = 0.6
+
+
+def _np_cost(pred_xy, goal, values, gamma=0.95, tol=TOL):
+    """Plain NumPy eq. 2 with the original's at-goal rule, one sequence at a time."""
+    M, K, _ = pred_xy.shape
+    out = np.zeros(M)
+    vmax = None if values is None else values.max()
+    for i in range(M):
+        c = 0.0
+        for j in range(K):
+            c += gamma ** j * (1.0 if np.linalg.norm(pred_xy[i, j] - goal) > tol else 0.0)
+        if values is not None:
+            v = vmax if np.linalg.norm(pred_xy[i, -1] - goal) <= tol else values[i]
+            c -= gamma ** K * v
+        out[i] = c
+    return out
+
+
+def test_cost_matches_numpy_including_at_goal_rule():
+    rng = np.random.default_rng(0)
+    M, K = 64, 7
+    goal = np.array([1.0, -2.0])
+    # Random walks that start near the goal so every pattern of near/far steps occurs.
+    pred = goal + np.cumsum(rng.normal(scale=0.35, size=(M, K, 2)), axis=1)
+    values = rng.normal(size=M) * 5 - 10
+    cfg = MPCConfig(num_samples=M, horizon=K)
+    got = mpc_cost(cfg, pred, goal, values)
+    ref = _np_cost(pred, goal, values)
+    at_goal = np.linalg.norm(pred[:, -1] - goal, axis=-1) <= TOL
+    assert 0 < at_goal.sum() < M  # both branches of the rule are exercised
+    np.testing.assert_allclose(got, ref, rtol=1e-5, atol=1e-5)
+    flat = mpc_cost(dataclasses.replace(cfg, use_value=False), pred, goal, values)
+    np.testing.assert_allclose(flat, _np_cost(pred, goal, None), rtol=1e-5, atol=1e-6)
+    # Batched over environments.
+    got2 = mpc_cost(cfg, np.stack([pred, pred[::-1]]), np.stack([goal, goal]), np.stack([values, values[::-1]]))
+    np.testing.assert_allclose(got2[1], ref[::-1], rtol=1e-5, atol=1e-5)
+
+
+def _tiny_model(E=2, seed=0, obs_dim=5, act_dim=2):
+    cfg = DynamicsConfig(ensemble_size=E, hidden=(16, 8))
+    rng = np.random.default_rng(seed)
+    obs = rng.normal(size=(100, obs_dim)).astype(np.float32)
+    act = rng.uniform(-1, 1, size=(100, act_dim)).astype(np.float32)
+    nxt = obs + 0.3 * rng.normal(size=obs.shape).astype(np.float32)
+    st = dynamics_fit_normaliser(dynamics_init(jax.random.key(seed), obs_dim, act_dim, cfg), obs, act, nxt, None, cfg)
+    return cfg, st
+
+
+def _np_member_step(st, e, s, a):
+    n = jax.tree.map(np.asarray, st.norm)
+    p = jax.tree.map(lambda x: np.asarray(x)[e], st.params)["params"]
+    x = np.concatenate([(s - n.obs_mean) / n.obs_std, (a - n.act_mean) / n.act_std], -1)
+    for i in range(3):
+        x = x @ p[f"Dense_{i}"]["kernel"] + p[f"Dense_{i}"]["bias"]
+        if i < 2:
+            x = np.where(x > 0, x, 0.01 * x)
+    return s + x * n.delta_std + n.delta_mean
+
+
+@pytest.mark.parametrize("mode", ["member", "mean"])
+def test_sequence_costs_match_numpy_rollout(mode):
+    dcfg, st = _tiny_model(E=2)
+    M, K = 40, 4
+    cfg = MPCConfig(num_samples=M, horizon=K, compute_dtype="float32", backend="xla", ensemble_mode=mode,
+                    block_rows=16)
+    obs = np.array([[0.2, -0.1, 0.3, 0.0, 1.0]], np.float32)
+    goal = np.array([[0.9, 0.4]], np.float32)
+    acts = np.asarray(sample_action_sequences(jax.random.key(3), cfg, 1, 2))
+    vf = lambda s, g: -jnp.linalg.norm(s[:, :2] - g, axis=-1) * 3.0 + s[:, 2]
+    got = sequence_costs(cfg, dcfg, st, obs, goal, acts, vf)[0]
+    # NumPy: member (i // block_rows) % E per sequence, or the mean of members at every step.
+    s = np.repeat(obs, M, 0).astype(np.float64)
+    xy = np.zeros((M, K, 2))
+    member = (np.arange(M) // 16) % 2
+    for j in range(K):
+        preds = np.stack([_np_member_step(st, e, s, acts[0, :, j]) for e in range(2)])
+        s = preds.mean(0) if mode == "mean" else preds[member, np.arange(M)]
+        xy[:, j] = s[:, :2]
+    v = -np.linalg.norm(s[:, :2] - goal[0], axis=-1) * 3.0 + s[:, 2]
+    np.testing.assert_allclose(got, _np_cost(xy, goal[0], v), rtol=1e-4, atol=1e-4)
+
+
+def test_fused_kernel_interpreted_matches_xla_bf16():
+    """The Pallas kernel (interpreted on the CPU) computes what the XLA bfloat16 path computes."""
+    dcfg, st = _tiny_model(E=2, obs_dim=29, act_dim=8)
+    cfg = MPCConfig(num_samples=100, horizon=3, compute_dtype="bfloat16", block_rows=32, hidden_chunk=16)
+    obs = np.random.default_rng(1).normal(size=(2, 29)).astype(np.float32)
+    goal = obs[:, :2] + np.array([[0.5, 0.0], [0.0, -0.8]], np.float32)
+    acts = sample_action_sequences(jax.random.key(0), cfg, 2, 8)
+    vf = lambda s, g: -jnp.linalg.norm(s[:, :2] - g, axis=-1) + 0.1 * s[:, 3]
+    ref = sequence_costs(dataclasses.replace(cfg, backend="xla"), dcfg, st, obs, goal, acts, vf)
+    got = sequence_costs(cfg, dcfg, st, obs, goal, acts, vf, interpret=True)
+    assert float(jnp.std(ref)) > 0.05  # costs differ between sequences
+    np.testing.assert_allclose(got, ref, rtol=1e-3, atol=2e-3)
+    f32 = sequence_costs(dataclasses.replace(cfg, backend="xla", compute_dtype="float32"), dcfg, st, obs, goal,
+                         acts, vf)
+    np.testing.assert_allclose(got, f32, atol=0.05)  # bf16 operands stay close to float32
+
+
+def _point_env():
+    return envs.make("point_ant_reacher")
+
+
+def _true_step_fn(env):
+    base = env.reset(jax.random.key(0))
+
+    def step(s, a):
+        return jax.vmap(lambda o, u: env.step(base.replace(obs=o), u).obs)(s, a)
+
+    return step
+
+
+def _oracle_value(s, g):
+    """Negative steps-to-go of the point mass at top speed 0.3 per step (ignores velocity)."""
+    return -jnp.maximum(jnp.linalg.norm(s[:, :2] - g, axis=-1) - TOL, 0.0) / 0.3
+
+
+def _run_episode(env, decide, start_xy, goal, steps, key):
+    state = env.reset_at(jax.random.key(1), jnp.asarray(start_xy, jnp.float32))
+    state = state.replace(info={**state.info, "goal": jnp.asarray(goal, jnp.float32)})
+
+    def body(carry, k):
+        st, reached = carry
+        a = decide(k, st.obs)
+        st = env.step(st, a)
+        d = jnp.linalg.norm(st.obs[:2] - goal)
+        return (st, reached | (d <= TOL)), d
+
+    (_, reached), d = jax.lax.scan(body, (state, jnp.array(False)), jax.random.split(key, steps))
+    return bool(reached), np.asarray(d)
+
+
+def test_mpc_with_true_dynamics_and_value_reaches_distant_goals():
+    env = _point_env()
+    step = _true_step_fn(env)
+    cfg = MPCConfig(num_samples=500, horizon=7)
+    for start, goal in [((-6.0, -6.0), (3.0, 4.0)), ((7.0, -2.0), (-4.0, 5.0))]:
+        g = jnp.asarray(goal, jnp.float32)
+        decide = lambda k, o: shooting_actions(cfg, step, k, o[None], g[None], 2, _oracle_value)[0]
+        reached, d = _run_episode(env, decide, start, g, 70, jax.random.key(0))
+        assert reached, d[-5:]
+
+
+def test_flat_mpc_reaches_a_goal_within_its_horizon_only_with_a_value_beyond():
+    env = _point_env()
+    step = _true_step_fn(env)
+    flat = MPCConfig(num_samples=500, horizon=7, use_value=False)
+    g = jnp.asarray([1.2, 0.8], jnp.float32)
+    decide = lambda k, o: shooting_actions(flat, step, k, o[None], g[None], 2)[0]
+    reached, _ = _run_episode(env, decide, (0.0, 0.0), g, 20, jax.random.key(2))
+    assert reached
+    # 6 units away the sparse cost is flat over the whole horizon: without V it does not get there.
+    far = jnp.asarray([6.0, 0.0], jnp.float32)
+    decide = lambda k, o: shooting_actions(flat, step, k, o[None], far[None], 2)[0]
+    reached, _ = _run_episode(env, decide, (0.0, 0.0), far, 40, jax.random.key(2))
+    assert not reached
+
+
+def test_mpc_with_learned_model_reaches_goal_in_true_env():
+    env = _point_env()
+    k1, k2, k3 = jax.random.split(jax.random.key(7), 3)
+    n = 3000
+    obs = jnp.concatenate([jax.random.uniform(k1, (n, 2), minval=-9, maxval=9),
+                           jax.random.uniform(k2, (n, 2), minval=-3, maxval=3)], -1)
+    act = jax.random.uniform(k3, (n, 2), minval=-1, maxval=1)
+    nxt = _true_step_fn(env)(obs, act)
+    dcfg = DynamicsConfig(hidden=(64, 64), batch_size=256)
+    st = dynamics_fit_normaliser(dynamics_init(jax.random.key(0), 4, 2, dcfg), obs, act, nxt, None, dcfg)
+    st, _ = jax.jit(dynamics_train, static_argnums=(0, 4))(dcfg, st, (obs, act, nxt), jax.random.key(1), 600)
+    cfg = MPCConfig(num_samples=500, horizon=7, compute_dtype="float32")
+    g = jnp.asarray([2.0, -3.0], jnp.float32)
+    decide = lambda k, o: mpc_action(cfg, dcfg, st, k, o, g, _oracle_value)
+    reached, d = _run_episode(env, decide, (-3.0, 2.0), g, 60, jax.random.key(3))
+    assert reached, d[-5:]
+
+
+def test_jit_matches_eager_no_retrace_and_single_env_api():
+    dcfg, st = _tiny_model(E=1, obs_dim=4)
+    cfg = MPCConfig(num_samples=64, horizon=3, compute_dtype="float32", backend="xla")
+    obs = jnp.asarray([[0.0, 0.0, 0.1, 0.0], [1.0, 1.0, 0.0, 0.2]], jnp.float32)
+    goal = jnp.asarray([[0.5, 0.5], [0.0, 0.0]], jnp.float32)
+    traces = []
+
+    def f(s, k, o, g):
+        traces.append(1)
+        return mpc_actions(cfg, dcfg, s, k, o, g, _oracle_value, return_info=True)
+
+    jf = jax.jit(f)
+    a_j, info_j = jf(st, jax.random.key(0), obs, goal)
+    with jax.disable_jit():
+        a_e, info_e = f(st, jax.random.key(0), obs, goal)
+    np.testing.assert_allclose(a_j, a_e, atol=1e-6)
+    np.testing.assert_allclose(info_j["cost"], info_e["cost"], rtol=1e-5, atol=1e-5)
+    n0 = len(traces)
+    for i in range(3):
+        jf(st, jax.random.key(i + 1), obs + i, goal)
+    assert len(traces) == n0
+    assert np.all(np.abs(np.asarray(a_j)) <= 1.0)
+    single = mpc_action(cfg, dcfg, st, jax.random.key(0), obs[1], goal[1], _oracle_value)
+    np.testing.assert_allclose(single, mpc_actions(cfg, dcfg, st, jax.random.key(0), obs[1:], goal[1:],
+                                                   _oracle_value)[0], atol=1e-6)
+    with pytest.raises(ValueError, match="value_fn"):
+        mpc_actions(cfg, dcfg, st, jax.random.key(0), obs, goal)
+    with pytest.raises(ValueError, match="ensemble_mode"):
+        MPCConfig(ensemble_mode="median")
