@@ -147,7 +147,7 @@ def _check_inputs(pos_xy, pos_mask, neg_xy, neg_mask):
 
 @functools.partial(jax.jit, static_argnames=("cfg", "inner"))
 def _fit(pos_xy, pos_mask, neg_xy, neg_mask, prev: InitiationClassifiers, cfg: InitiationConfig,
-         inner: int) -> InitiationClassifiers:
+         inner) -> InitiationClassifiers:
     X = jnp.concatenate([pos_xy, neg_xy], axis=0).astype(jnp.float32)
     pos_mask = pos_mask.astype(bool)
     neg_mask = neg_mask.astype(bool)
@@ -165,10 +165,12 @@ def _fit(pos_xy, pos_mask, neg_xy, neg_mask, prev: InitiationClassifiers, cfg: I
     # first model: SVC with negatives, else one-class on the positives (one SMO run either way)
     nu_first = cfg.nu_optimistic if cfg.variant == "dual" else cfg.nu_single
     svc = svm._svc_problem(labels, all_slots, jnp.float32(cfg.C), balanced)
-    occ = svm._one_class_problem(X, pos_slots, jnp.float32(nu_first), gamma)
+    n = X.shape[0]
+    occ = svm._one_class_problem(X, pos_slots, jnp.float32(nu_first), gamma,
+                                 svm.one_class_start_bound(nu_first, n))
     problem = tuple(jnp.where(two_class, a, b) for a, b in zip(svc, occ))
     first_mask = jnp.where(two_class, all_slots, pos_slots)
-    first = svm._fit_problem(X, first_mask, problem, ~two_class, gamma, tol, max_iter, inner)
+    first, f_train = svm._fit_problem(X, first_mask, problem, ~two_class, gamma, tol, max_iter, inner)
     opt = _select(has_pos, first, prev.optimistic)
     opt_fitted = has_pos | prev.optimistic_fitted
 
@@ -177,18 +179,19 @@ def _fit(pos_xy, pos_mask, neg_xy, neg_mask, prev: InitiationClassifiers, cfg: I
                                      pessimistic_fitted=opt_fitted)
 
     # pessimistic: one-class ν on the positives the SVC calls positive (all positives without SVC)
-    called_pos = svm.predict(first, X)
+    called_pos = f_train >= 0  # the SVC's own training predictions (two-class rule: f >= 0)
     pes_slots = pos_slots & jnp.where(two_class, called_pos, True)
     any_pes = jnp.any(pes_slots)
-    pes_problem = svm._one_class_problem(X, pes_slots, jnp.float32(cfg.nu_pessimistic), gamma)
-    pes_new = svm._fit_problem(X, pes_slots, pes_problem, True, gamma, tol, max_iter, inner)
+    pes_problem = svm._one_class_problem(X, pes_slots, jnp.float32(cfg.nu_pessimistic), gamma,
+                                         svm.one_class_start_bound(cfg.nu_pessimistic, n))
+    pes_new, _ = svm._fit_problem(X, pes_slots, pes_problem, True, gamma, tol, max_iter, inner)
     pes = _select(any_pes, pes_new, prev.pessimistic)
     return InitiationClassifiers(optimistic=opt, pessimistic=pes, optimistic_fitted=opt_fitted,
                                  pessimistic_fitted=any_pes | prev.pessimistic_fitted)
 
 
 def fit_initiation(pos_xy, pos_mask, neg_xy, neg_mask, cfg: InitiationConfig = InitiationConfig(),
-                   prev: InitiationClassifiers | None = None, *, _inner: int | None = None
+                   prev: InitiationClassifiers | None = None, *, _inner=None
                    ) -> InitiationClassifiers:
     """Refit one option's classifiers.
 
@@ -204,7 +207,7 @@ def fit_initiation(pos_xy, pos_mask, neg_xy, neg_mask, cfg: InitiationConfig = I
 
 def fit_initiation_batch(pos_xy, pos_mask, neg_xy, neg_mask, cfg: InitiationConfig = InitiationConfig(),
                          prev: InitiationClassifiers | None = None, dirty=None, *,
-                         _inner: int | None = None) -> InitiationClassifiers:
+                         _inner=None) -> InitiationClassifiers:
     """Refit a batch of K options at once (vmapped SMO; each option stops on its own).
 
     pos_xy (K, P, d), pos_mask (K, P), neg_xy (K, M, d), neg_mask (K, M); prev: batched

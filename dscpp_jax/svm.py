@@ -48,14 +48,25 @@ _TAU = 1e-12
 # cheaper; on a CPU one step per check compiles faster and runs faster. Results do not depend on
 # it (a finished problem's extra steps are no-ops).
 INNER_STEPS = {"cpu": 1, "default": 8}
+# argmax as one variadic (value, index) reduction, or as max + min-index (two plain reductions,
+# much faster on XLA:CPU).
+VARIADIC_ARGMAX = {"cpu": False, "default": True}
 
 
 def _resolve_inner(inner):
+    """Static solver setting ``(steps per convergence check, variadic argmax)`` for the backend.
+
+    ``inner``: None (backend default), an int (steps per check) or such a tuple.
+    """
+    backend = jax.default_backend()
+    variadic = VARIADIC_ARGMAX.get(backend, VARIADIC_ARGMAX["default"])
     if inner is None:
-        return INNER_STEPS.get(jax.default_backend(), INNER_STEPS["default"])
-    if not isinstance(inner, int) or inner < 1:
+        inner = INNER_STEPS.get(backend, INNER_STEPS["default"])
+    if isinstance(inner, tuple):
+        inner, variadic = inner
+    if not isinstance(inner, (int, np.integer)) or inner < 1:
         raise ValueError(f"inner steps must be a positive int, got {inner!r}")
-    return inner
+    return (int(inner), bool(variadic))
 # Query rows per block in kernel sums (bounds memory at block × n_train floats).
 _BLOCK = 512
 
@@ -140,14 +151,6 @@ def _check_max_iter(max_iter, n):
 # Kernels
 
 
-def _sq_dist(Xa, Xb):
-    """(a, b) squared distances, summed feature by feature (no 3-D intermediate, no matmul)."""
-    d2 = jnp.zeros((Xa.shape[0], Xb.shape[0]), Xa.dtype)
-    for k in range(Xa.shape[1]):
-        d2 = d2 + (Xa[:, k, None] - Xb[None, :, k]) ** 2
-    return d2
-
-
 def _kernel_row(Xt, i, gamma):
     """K(X_t, X_i) for all t: (n,), from feature-major points Xt (d, n)."""
     d2 = (Xt[0] - Xt[0, i]) ** 2
@@ -156,23 +159,33 @@ def _kernel_row(Xt, i, gamma):
     return jnp.exp(-gamma * d2)
 
 
-def _kernel_sum(X, coef, Xq, gamma):
-    """Σ_i coef_i K(X_i, Xq_q) for every query row, in blocks of queries: (q,).
+def _kernel_block(Xt, coef, Qt, gamma):
+    """Σ_i coef_i K(X_i, q) for the queries Qt (d, b): (b,).
 
-    An elementwise product + sum (not a matmul) keeps full float32 precision on GPUs whose
-    matmuls default to TF32.
+    Feature by feature (no 3-D intermediate) and an elementwise product + sum rather than a
+    matmul, which keeps full float32 precision on GPUs whose matmuls default to TF32.
     """
+    d2 = (Qt[0][:, None] - Xt[0][None, :]) ** 2
+    for k in range(1, Xt.shape[0]):
+        d2 = d2 + (Qt[k][:, None] - Xt[k][None, :]) ** 2
+    return jnp.sum(jnp.exp(-gamma * d2) * coef[None, :], axis=1)
+
+
+def _kernel_sum(X, coef, Xq, gamma):
+    """Σ_i coef_i K(X_i, Xq_q) for every query row, ``_BLOCK`` queries at a time: (q,)."""
+    Xt, Qt = X.T, Xq.T
     q = Xq.shape[0]
     if q <= _BLOCK:
-        return jnp.sum(jnp.exp(-gamma * _sq_dist(Xq, X)) * coef[None, :], axis=1)
+        return _kernel_block(Xt, coef, Qt, gamma)
     nb = -(-q // _BLOCK)
-    Xqp = jnp.pad(Xq, ((0, nb * _BLOCK - q), (0, 0)))
+    Qt = jnp.pad(Qt, ((0, 0), (0, nb * _BLOCK - q)))
 
-    def block(xb):
-        return jnp.sum(jnp.exp(-gamma * _sq_dist(xb, X)) * coef[None, :], axis=1)
+    def body(b, out):
+        qb = jax.lax.dynamic_slice_in_dim(Qt, b * _BLOCK, _BLOCK, axis=1)
+        return jax.lax.dynamic_update_slice_in_dim(out, _kernel_block(Xt, coef, qb, gamma), b * _BLOCK, 0)
 
-    out = jax.lax.map(block, Xqp.reshape(nb, _BLOCK, Xq.shape[1]))
-    return out.reshape(-1)[:q]
+    out = jax.lax.fori_loop(0, nb, body, jnp.zeros((nb * _BLOCK,), jnp.result_type(coef, jnp.float32)))
+    return out[:q]
 
 
 # --------------------------------------------------------------------------------------------
@@ -187,32 +200,35 @@ class _SMOState:
     done: jax.Array
 
 
-def _argmax(v):
-    """(first index of the maximum, maximum); two plain reductions (fast on CPU and GPU)."""
+def _argmax(v, variadic):
+    """(first index of the maximum, maximum)."""
+    if variadic:
+        i = jnp.argmax(v)
+        return i, v[i]
     m = jnp.max(v)
     idx = jnp.min(jnp.where(v == m, jnp.arange(v.shape[0], dtype=jnp.int32), v.shape[0] - 1))
     return idx, m
 
 
-def _working_set(y, Cv, alpha, G):
+def _working_set(y, Cv, alpha, G, variadic=False):
     """libsvm's index sets and maximal violations: (I_up, I_low, i, Gmax, gap)."""
     up = jnp.where(y > 0, alpha < Cv, alpha > 0)
     low = jnp.where(y > 0, alpha > 0, alpha < Cv)
     score_up = jnp.where(up, -y * G, -jnp.inf)
-    i, gmax = _argmax(score_up)
+    i, gmax = _argmax(score_up, variadic)
     gmax2 = jnp.max(jnp.where(low, y * G, -jnp.inf))
     return up, low, i, gmax, gmax + gmax2
 
 
-def _smo_step(Xt, y, Cv, gamma, tol, max_iter, s: _SMOState) -> _SMOState:
+def _smo_step(Xt, y, Cv, gamma, tol, max_iter, variadic, s: _SMOState) -> _SMOState:
     alpha, G = s.alpha, s.G
-    _, low, i, gmax, gap = _working_set(y, Cv, alpha, G)
+    _, low, i, gmax, gap = _working_set(y, Cv, alpha, G, variadic)
     Ki = _kernel_row(Xt, i, gamma)
     b = gmax + y * G
     a = 2.0 - 2.0 * Ki  # K_ii + K_jj − 2 K_ij with K_tt = 1 for the RBF kernel
     a = jnp.where(a > 0, a, _TAU)
     obj = jnp.where(low & (b > 0), -(b * b) / a, jnp.inf)
-    j, obj_min = _argmax(-obj)
+    j, obj_min = _argmax(-obj, variadic)
     found = jnp.isfinite(obj_min)
     stop = (gap < tol) | (~found) | (~jnp.isfinite(gap))
     active = (~s.done) & (~stop) & (s.it < max_iter)
@@ -240,9 +256,13 @@ def _smo_step(Xt, y, Cv, gamma, tol, max_iter, s: _SMOState) -> _SMOState:
     )
 
 
-def _solve(X, y, Cv, alpha0, G0, gamma, tol, max_iter: int, inner: int):
-    """Run SMO from a feasible (alpha0, G0 = Qα₀ + p). Returns (alpha, G, n_iter, gap)."""
-    step = functools.partial(_smo_step, X.T, y, Cv, gamma, tol, max_iter)
+def _solve(X, y, Cv, alpha0, G0, gamma, tol, max_iter: int, inner):
+    """Run SMO from a feasible (alpha0, G0 = Qα₀ + p). Returns (alpha, G, n_iter, gap).
+
+    inner: static ``(steps per convergence check, variadic argmax)``.
+    """
+    inner, variadic = inner
+    step = functools.partial(_smo_step, X.T, y, Cv, gamma, tol, max_iter, variadic)
 
     def body(s):
         if inner == 1:
@@ -310,24 +330,45 @@ def _one_class_alpha0(mask, nu):
     return jnp.where(mask, jnp.clip(nul - rank.astype(jnp.float32), 0.0, 1.0), 0.0)
 
 
-def _one_class_problem(X, mask, nu, gamma):
+def one_class_start_bound(nu, n_slots: int) -> int:
+    """Static bound on libsvm's nonzero starting alphas (⌈ν·l⌉ ≤ ⌊ν·n⌋ + 1), or n when ν is traced."""
+    v = _concrete(nu)
+    if v is None or v.ndim != 0:
+        return n_slots
+    return int(min(n_slots, np.floor(float(v) * n_slots) + 2))
+
+
+def _one_class_problem(X, mask, nu, gamma, start_bound=None):
+    """(y, C_i, α₀, G₀ = Kα₀) of a one-class ν-SVM.
+
+    ``start_bound`` (static): at most this many nonzero α₀ (see ``one_class_start_bound``), so
+    G₀ costs start_bound × n kernel values instead of n × n.
+    """
     mask = mask.astype(bool)
+    n = mask.shape[0]
     y = jnp.ones(mask.shape, jnp.float32)
     Cv = mask.astype(jnp.float32)
     alpha0 = _one_class_alpha0(mask, nu)
-    G0 = _kernel_sum(X, alpha0, X, gamma)
+    if start_bound is None or start_bound >= n:
+        G0 = _kernel_sum(X, alpha0, X, gamma)
+    else:
+        (idx,) = jnp.nonzero(alpha0 > 0, size=start_bound, fill_value=0)
+        used = jnp.arange(start_bound) < jnp.sum(alpha0 > 0)
+        G0 = _kernel_sum(X[idx], jnp.where(used, alpha0[idx], 0.0), X, gamma)
     return y, Cv, alpha0, G0
 
 
-def _fit_problem(X, mask, problem, one_class, gamma, tol, max_iter, inner) -> SVMModel:
+def _fit_problem(X, mask, problem, one_class, gamma, tol, max_iter, inner):
+    """Solve a set-up problem. Returns (model, training decision values f(X))."""
     y, Cv, alpha0, G0 = problem
     alpha, G, n_iter, gap = _solve(X, y, Cv, alpha0, G0, gamma, tol, max_iter, inner)
     mask = mask.astype(bool)
     alpha = jnp.where(mask, alpha, 0.0)
-    return SVMModel(
+    rho = _rho(y, Cv, alpha, G, mask).astype(jnp.float32)
+    model = SVMModel(
         support=X,
         coef=y * alpha,
-        rho=_rho(y, Cv, alpha, G, mask).astype(jnp.float32),
+        rho=rho,
         gamma=jnp.asarray(gamma, jnp.float32),
         mask=mask,
         one_class=jnp.asarray(one_class, bool),
@@ -335,20 +376,23 @@ def _fit_problem(X, mask, problem, one_class, gamma, tol, max_iter, inner) -> SV
         n_iter=n_iter,
         gap=gap.astype(jnp.float32),
     )
+    # G = Qα + p, so Σ_j coef_j K_ij = y_i (G_i − p_i): the training decisions come for free
+    p = jnp.where(one_class, 0.0, -1.0)
+    return model, y * (G - p) - rho
 
 
 @functools.partial(jax.jit, static_argnames=("max_iter", "inner"))
 def _fit_svc_jit(X, labels, mask, gamma, C, balanced, tol, max_iter, inner):
     X = X.astype(jnp.float32)
     problem = _svc_problem(labels, mask, jnp.asarray(C, jnp.float32), balanced)
-    return _fit_problem(X, mask, problem, False, gamma, tol, max_iter, inner)
+    return _fit_problem(X, mask, problem, False, gamma, tol, max_iter, inner)[0]
 
 
-@functools.partial(jax.jit, static_argnames=("max_iter", "inner"))
-def _fit_one_class_jit(X, mask, nu, gamma, tol, max_iter, inner):
+@functools.partial(jax.jit, static_argnames=("max_iter", "inner", "start_bound"))
+def _fit_one_class_jit(X, mask, nu, gamma, tol, max_iter, inner, start_bound):
     X = X.astype(jnp.float32)
-    problem = _one_class_problem(X, mask, jnp.asarray(nu, jnp.float32), gamma)
-    return _fit_problem(X, mask, problem, True, gamma, tol, max_iter, inner)
+    problem = _one_class_problem(X, mask, jnp.asarray(nu, jnp.float32), gamma, start_bound)
+    return _fit_problem(X, mask, problem, True, gamma, tol, max_iter, inner)[0]
 
 
 # --------------------------------------------------------------------------------------------
@@ -356,7 +400,7 @@ def _fit_one_class_jit(X, mask, nu, gamma, tol, max_iter, inner):
 
 
 def fit_svc(X, labels, mask, *, gamma, C=1.0, class_weight=None, tol=1e-3, max_iter=None,
-            _inner: int | None = None) -> SVMModel:
+            _inner=None) -> SVMModel:
     """Fit a two-class RBF C-SVC (scikit-learn ``SVC(kernel="rbf", gamma, C, class_weight, tol)``).
 
     X: (n, d) points (padded slots anywhere); labels: (n,) 1 = positive, 0 = negative;
@@ -391,7 +435,7 @@ def fit_svc(X, labels, mask, *, gamma, C=1.0, class_weight=None, tol=1e-3, max_i
 
 
 def fit_one_class(X, mask, *, nu, gamma, tol=1e-3, max_iter=None,
-                  _inner: int | None = None) -> SVMModel:
+                  _inner=None) -> SVMModel:
     """Fit an RBF one-class ν-SVM (scikit-learn ``OneClassSVM(kernel="rbf", nu, gamma, tol)``).
 
     X: (n, d) points; mask: (n,) bool valid slots; nu in (0, 1], gamma > 0 (both may be traced).
@@ -403,7 +447,8 @@ def fit_one_class(X, mask, *, nu, gamma, tol=1e-3, max_iter=None,
     _check_range("gamma", gamma, 0.0, None)
     _check_range("tol", tol, 0.0, None)
     max_iter = _check_max_iter(max_iter, X.shape[0])
-    return _fit_one_class_jit(X, mask, nu, gamma, tol, max_iter=max_iter, inner=_resolve_inner(_inner))
+    return _fit_one_class_jit(X, mask, nu, gamma, tol, max_iter=max_iter, inner=_resolve_inner(_inner),
+                              start_bound=one_class_start_bound(nu, X.shape[0]))
 
 
 def decision_function(model: SVMModel, X_query) -> jax.Array:
