@@ -1,0 +1,273 @@
+"""The run configuration: one frozen, hashable dataclass with the paper's constants as defaults.
+
+`Config` holds every static size and hyperparameter of a run. It is hashable so that it can be a
+static argument of `jax.jit`; it is never mutated (use `dataclasses.replace` or `Config.override`).
+`Config.validate()` runs before anything is compiled and raises a `ValueError` that says what to
+change.
+
+Presets:
+- `paper`: the published schedule as far as a batched design allows (B = 1 environment, one TD3
+  gradient step per stored transition, 14,000 x 7 MPC, 50 random warm-up episodes, gestation 10,
+  buffer 50, timeout 200, 1000-step episodes, 2,000 episodes).
+- `fast`: tuned for wall-clock per environment family (many parallel environments, fewer MPC samples
+  on the point-mass twins, shorter warm-up); see `preset()` for the exact differences.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass, field
+from typing import Any
+
+ALGOS = ("mb_dscpp", "mf_dscpp", "dual", "dsc", "td3_her", "mb_flat", "mb_flat_value")
+SUBGOALS = ("robust", "dp")
+PRESETS = ("paper", "fast")
+HIERARCHICAL_ALGOS = ("mb_dscpp", "mf_dscpp", "dual", "dsc")
+MODEL_BASED_ALGOS = ("mb_dscpp", "mb_flat", "mb_flat_value")
+
+
+@dataclass(frozen=True)
+class Config:
+    """Everything static about a training run (sizes, schedule, hyperparameters)."""
+
+    # --- task and algorithm -------------------------------------------------------------------
+    env: str = "point_u_maze"          # envs.make name
+    algo: str = "mb_dscpp"             # one of ALGOS
+    subgoal: str = "robust"            # robust | dp
+    seed: int = 0
+
+    # --- batching -----------------------------------------------------------------------------
+    num_envs: int = 1                  # B parallel environments
+    steps_per_iter: int = 1000         # T env steps per train_step (per environment)
+    total_env_steps: int = 2_001_000   # stop after this many env steps (all envs together)
+
+    # --- episodes and options (paper constants) ----------------------------------------------
+    episode_length: int = 1000
+    warmup_episodes: int = 50          # uniform-random episodes from the task start
+    goal_tolerance: float = 0.6
+    gestation: int = 10
+    buffer_len: int = 50
+    option_timeout: int = 200
+    max_options: int = 12              # fixed capacity of the option table (global + goal + links)
+    max_pos_traj: int = 100
+    max_neg: int = 100
+    svm_gamma: float = 0.5
+    diverse_starts: bool = True        # training episodes after warm-up start anywhere free
+
+    # --- TD3 + HER ----------------------------------------------------------------------------
+    td3_hidden: int = 256
+    td3_batch_size: int = 100
+    td3_updates_per_step: float = 1.0  # gradient steps per stored env transition
+    td3_lr: float = -1.0               # < 0: the algorithm's preset (1e-5 model based, 3e-4 free)
+    discount: float = 0.99
+    replay_capacity: int = 1_000_000
+    her_strategy: str = "final"        # final | future | none
+    her_relabel_prob: float = 0.5
+    action_noise: float = 0.1          # Gaussian N(0, 0.1) on the actor's action
+    random_action_prob: float = -1.0   # < 0: 0.1 model based, 0.2 model free
+    mf_initial_random_prob: float = 0.8  # model free: 0.8 until `mf_random_decay_successes`
+    mf_random_decay_successes: int = 3
+
+    # --- dynamics model + MPC -------------------------------------------------------------------
+    dyn_hidden: int = 500
+    dyn_ensemble: int = 1
+    dyn_batch_size: int = 1024
+    dyn_lr: float = 1e-3
+    dyn_updates_per_step: float = 0.25  # model gradient steps per stored env transition
+    dyn_pretrain_steps: int = 2000     # model steps once the warm-up data is in (~50 epochs)
+    model_capacity: int = 300_000
+    mpc_samples: int = 14_000
+    mpc_horizon: int = 7
+    mpc_discount: float = 0.95
+    mpc_dtype: str = "float32"
+
+    # --- evaluation, logging, checkpoints (host side) -----------------------------------------
+    eval_every: int = 10               # train_step calls between evaluations (0: never)
+    eval_episodes: int = 4
+    log_every: int = 1
+    checkpoint_every: int = 20         # train_step calls between checkpoints (0: only at exit)
+    keep_checkpoints: int = 2
+    preset: str = "paper"
+
+    # ------------------------------------------------------------------------------------------
+    @property
+    def hierarchical(self) -> bool:
+        return self.algo in HIERARCHICAL_ALGOS
+
+    @property
+    def model_based(self) -> bool:
+        return self.algo in MODEL_BASED_ALGOS
+
+    @property
+    def uses_value_in_mpc(self) -> bool:
+        return self.algo in ("mb_dscpp", "mb_flat_value")
+
+    @property
+    def classifier_variant(self) -> str:
+        return "single" if self.algo == "dsc" else "dual"
+
+    @property
+    def steps_per_iteration_total(self) -> int:
+        return self.num_envs * self.steps_per_iter
+
+    @property
+    def td3_updates(self) -> int:
+        """TD3 gradient steps per train_step."""
+        return max(1, int(round(self.td3_updates_per_step * self.steps_per_iteration_total)))
+
+    @property
+    def dyn_updates(self) -> int:
+        """Dynamics-model gradient steps per train_step (model-based algorithms only)."""
+        if not self.model_based:
+            return 0
+        return max(1, int(round(self.dyn_updates_per_step * self.steps_per_iteration_total)))
+
+    @property
+    def effective_random_prob(self) -> float:
+        if self.random_action_prob >= 0:
+            return self.random_action_prob
+        return 0.1 if self.model_based else 0.2
+
+    @property
+    def effective_td3_lr(self) -> float:
+        if self.td3_lr > 0:
+            return self.td3_lr
+        return 1e-5 if self.model_based else 3e-4
+
+    @property
+    def num_iterations(self) -> int:
+        return -(-self.total_env_steps // self.steps_per_iteration_total)
+
+    # ------------------------------------------------------------------------------------------
+    def override(self, **kw: Any) -> "Config":
+        """A copy with some fields replaced (unknown names raise a ValueError)."""
+        names = {f.name for f in dataclasses.fields(self)}
+        bad = sorted(set(kw) - names)
+        if bad:
+            raise ValueError(f"unknown config field(s) {bad}; valid fields: {sorted(names)}")
+        return dataclasses.replace(self, **kw)
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), indent=2, sort_keys=True)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Config":
+        names = {f.name for f in dataclasses.fields(cls)}
+        return cls(**{k: v for k, v in d.items() if k in names})
+
+    def validate(self) -> "Config":
+        """Raise a ValueError naming the fix for any impossible setting; return self."""
+        def need(cond: bool, msg: str) -> None:
+            if not cond:
+                raise ValueError(f"invalid config: {msg}")
+
+        need(self.algo in ALGOS, f"algo={self.algo!r}; choose one of {ALGOS}")
+        need(self.subgoal in SUBGOALS, f"subgoal={self.subgoal!r}; choose one of {SUBGOALS}")
+        need(self.preset in PRESETS, f"preset={self.preset!r}; choose one of {PRESETS}")
+        need(self.her_strategy in ("final", "future", "none"),
+             f"her_strategy={self.her_strategy!r}; choose final, future or none")
+        for name in ("num_envs", "steps_per_iter", "episode_length", "option_timeout", "buffer_len",
+                     "gestation", "td3_batch_size", "dyn_batch_size", "mpc_samples", "mpc_horizon",
+                     "eval_episodes", "max_pos_traj", "max_neg", "td3_hidden", "dyn_hidden",
+                     "dyn_ensemble", "total_env_steps"):
+            need(int(getattr(self, name)) >= 1, f"{name}={getattr(self, name)} must be >= 1")
+        need(self.max_options >= 3, f"max_options={self.max_options} must be >= 3 (global, goal "
+             "and at least one chain link)")
+        need(self.warmup_episodes >= 0, "warmup_episodes must be >= 0")
+        need(self.goal_tolerance > 0, "goal_tolerance must be > 0")
+        need(0.0 < self.discount <= 1.0, "discount must be in (0, 1]")
+        need(0.0 < self.mpc_discount <= 1.0, "mpc_discount must be in (0, 1]")
+        need(0.0 <= self.her_relabel_prob <= 1.0, "her_relabel_prob must be in [0, 1]")
+        need(self.random_action_prob <= 1.0, "random_action_prob must be <= 1")
+        need(self.td3_updates_per_step >= 0 and self.dyn_updates_per_step >= 0,
+             "updates_per_step values must be >= 0")
+        need(self.mpc_dtype in ("float32", "bfloat16"), "mpc_dtype must be float32 or bfloat16")
+        per_env = self.replay_capacity // self.num_envs
+        need(per_env >= max(2, self.steps_per_iter),
+             f"replay_capacity={self.replay_capacity} gives {per_env} steps per environment for "
+             f"num_envs={self.num_envs}; raise replay_capacity to at least "
+             f"{self.num_envs * max(2, self.steps_per_iter)}")
+        need(per_env >= self.option_timeout + 1,
+             f"replay_capacity per environment ({per_env}) must exceed option_timeout="
+             f"{self.option_timeout} so HER can see whole option segments; raise replay_capacity")
+        if self.model_based:
+            mper = self.model_capacity // self.num_envs
+            need(mper >= max(2, self.steps_per_iter),
+                 f"model_capacity={self.model_capacity} too small for num_envs={self.num_envs} and "
+                 f"steps_per_iter={self.steps_per_iter}; raise it to at least "
+                 f"{self.num_envs * max(2, self.steps_per_iter)}")
+        need(self.buffer_len < self.option_timeout + 1,
+             "buffer_len must be <= option_timeout")
+        return self
+
+
+# ------------------------------------------------------------------------------------------------
+# Presets
+# ------------------------------------------------------------------------------------------------
+def _is_point(env: str) -> bool:
+    return env.startswith("point_")
+
+
+def preset(name: str = "fast", env: str = "point_u_maze", algo: str = "mb_dscpp",
+           **overrides: Any) -> Config:
+    """A named preset for an env and algorithm, with field overrides applied last.
+
+    paper: B = 1, T = 1000 (one episode per step), one TD3 step per transition, 14,000 x 7 MPC,
+      2,001 episodes. Differences from the original: learning happens once per T steps rather than
+      after every option rollout; classifiers are refit once per T steps.
+    fast (point-mass twins): 32 envs x 100 steps per iteration, 500-step episodes, 8 warm-up
+      episodes, 512 x 7 MPC with a 64-unit model, 0.25 TD3 steps per transition, gestation 5
+      (the paper's U-maze value, appendix Table 4). Meant for a laptop CPU.
+    fast (ant): 64 envs x 100 steps, 1000-step episodes, 2,048 x 7 MPC, 0.1 TD3 steps and 0.05
+      model steps per transition, gestation 5. Meant for one GPU.
+    """
+    if name not in PRESETS:
+        raise ValueError(f"unknown preset {name!r}; choose one of {PRESETS}")
+    base: dict[str, Any] = dict(env=env, algo=algo, preset=name)
+    if name == "paper":
+        base.update(num_envs=1, steps_per_iter=1000, total_env_steps=2_001_000,
+                    eval_every=10, eval_episodes=1, checkpoint_every=50)
+    elif _is_point(env):
+        base.update(
+            num_envs=32, steps_per_iter=100, total_env_steps=400_000,
+            episode_length=500, warmup_episodes=8, gestation=5,
+            max_options=8, max_pos_traj=50, max_neg=50,
+            td3_updates_per_step=0.25, td3_batch_size=256, td3_hidden=128,
+            replay_capacity=200_000, model_capacity=100_000,
+            dyn_hidden=64, dyn_updates_per_step=0.02, dyn_pretrain_steps=300,
+            dyn_batch_size=256, mpc_samples=512,
+            eval_every=10, eval_episodes=8, checkpoint_every=20,
+        )
+    else:
+        base.update(
+            num_envs=64, steps_per_iter=100, total_env_steps=2_000_000,
+            gestation=5, td3_updates_per_step=0.1, td3_batch_size=256,
+            replay_capacity=1_000_000, model_capacity=300_000,
+            dyn_updates_per_step=0.05, dyn_pretrain_steps=1500, mpc_samples=2048,
+            eval_every=20, eval_episodes=8, checkpoint_every=40,
+        )
+    base.update(overrides)
+    return Config(**base)
+
+
+def parse_value(field_name: str, text: str) -> Any:
+    """Convert a command-line string to the type of Config field `field_name`."""
+    types = {f.name: f.type for f in dataclasses.fields(Config)}
+    if field_name not in types:
+        raise ValueError(f"unknown config field {field_name!r}; valid: {sorted(types)}")
+    t = types[field_name]
+    t = t if isinstance(t, str) else getattr(t, "__name__", str(t))
+    if t == "bool":
+        if text.lower() in ("1", "true", "yes", "on"):
+            return True
+        if text.lower() in ("0", "false", "no", "off"):
+            return False
+        raise ValueError(f"{field_name} expects true/false, got {text!r}")
+    if t == "int":
+        return int(float(text)) if "e" in text.lower() else int(text)
+    if t == "float":
+        return float(text)
+    return text

@@ -1,0 +1,169 @@
+"""Jitted evaluation and the policy constructor.
+
+`evaluate(state, key, num_episodes)` runs `num_episodes` episodes in parallel from the task start
+(or from given start positions) with deterministic option policies: no exploration noise, no
+random actions, no example collection, no learning. The TrainState is only read, never returned,
+so evaluation cannot leak into training. It reports the success rate, steps to the goal,
+per-option success rates, the chain probability (paper eq. 3) and the trajectories for plots.
+"""
+from __future__ import annotations
+
+import functools
+from typing import Any, Dict, NamedTuple, Optional
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+
+from dscpp_jax import trainer as T
+from dscpp_jax.config import Config
+
+
+@flax.struct.dataclass
+class EvalResult:
+    success: jax.Array        # (N,) bool: reached the task goal
+    steps: jax.Array          # (N,) int32: steps taken (episode length when not reached)
+    xy: jax.Array             # (L + 1, N, 2) positions; frozen after the episode ended
+    option: jax.Array         # (L, N) int32 option executed at each step (-1 after the end)
+    active: jax.Array         # (L, N) bool: the episode was still running at that step
+    option_executions: jax.Array  # (K,) option executions that ended during evaluation
+    option_successes: jax.Array   # (K,)
+    chain_probability: jax.Array  # () from the training statistics (eq. 3)
+    num_options: jax.Array        # () options in the chain (including global and goal options)
+
+
+def _eval_impl(state: T.TrainState, key, num_episodes: int, starts=None) -> EvalResult:
+    config: Config = state.config
+    env = T.make_env(config)
+    N, L, K = num_episodes, config.episode_length, config.max_options
+    k_reset, k_run = jax.random.split(key)
+    ks = jax.random.split(k_reset, N)
+    if starts is None:
+        es = jax.vmap(env.reset)(ks)
+    else:
+        es = jax.vmap(env.reset_at)(ks, jnp.asarray(starts, jnp.float32))
+    goal = jnp.asarray(env.goal, jnp.float32)
+    ex = T.exec_init(config, es.obs, goal)
+    chain, td3, dyn, dp_table = state.chain, state.td3, state.dyn, state.dp_table
+
+    def body(carry, k):
+        es, ex, active, success, steps, n_exec, n_succ = carry
+        k_opt, k_act = jax.random.split(k)
+        obs = es.obs
+        ex = T._choose_options(config, env, chain, dp_table, td3, ex, obs, k_opt, active)
+        acts = T._policy_actions(config, td3, dyn, obs, ex.subgoal, k_act, False, 0.0)
+        nes = jax.vmap(env.step)(es, acts)
+        nes = jax.tree_util.tree_map(
+            lambda n, o: jnp.where(active.reshape((N,) + (1,) * (n.ndim - 1)), n, o), nes, es)
+        ex = T._push_traj(ex, nes.obs[:, :2])
+        done = (nes.done > 0) & active
+        ended, osucc = T._option_end(config, env, chain, ex, nes.obs[:, :2], done)
+        ended = ended & active
+        onehot = jax.nn.one_hot(jnp.where(ended, ex.option, K), K + 1, dtype=jnp.int32)[:, :K]
+        n_exec = n_exec + onehot.sum(0)
+        n_succ = n_succ + (onehot * (osucc & ended)[:, None]).sum(0)
+        opt_now = jnp.where(active, ex.option, T.NO_OPTION)
+        ex = ex.replace(option=jnp.where(ended, T.NO_OPTION, ex.option))
+        success = success | (done & (nes.info["success"] > 0))
+        steps = steps + active.astype(jnp.int32)
+        active = active & ~done
+        return (nes, ex, active, success, steps, n_exec, n_succ), (nes.obs[:, :2], opt_now,
+                                                                   active)
+
+    z = jnp.zeros((K,), jnp.int32)
+    carry0 = (es, ex, jnp.ones((N,), bool), jnp.zeros((N,), bool), jnp.zeros((N,), jnp.int32), z, z)
+    carry, (xy, opt, act) = jax.lax.scan(body, carry0, jax.random.split(k_run, L))
+    _, _, _, success, steps, n_exec, n_succ = carry
+    xy = jnp.concatenate([es.obs[None, :, :2], xy], axis=0)
+    if config.hierarchical:
+        cm = T._chain_metrics(config, chain)
+        cp, nopt = cm["options/chain_probability"], cm["options/num_options"]
+    else:
+        cp, nopt = jnp.asarray(jnp.nan), jnp.asarray(1.0)
+    return EvalResult(success=success, steps=steps, xy=xy, option=opt,
+                      active=jnp.concatenate([jnp.ones((1, N), bool), act[:-1]], 0),
+                      option_executions=n_exec, option_successes=n_succ,
+                      chain_probability=jnp.asarray(cp, jnp.float32),
+                      num_options=jnp.asarray(nopt, jnp.float32))
+
+
+evaluate_episodes = jax.jit(_eval_impl, static_argnames=("num_episodes",))
+"""Jitted `evaluate_episodes(state, key, num_episodes, starts=None) -> EvalResult`."""
+
+
+def summarize(result: EvalResult, prefix: str = "eval/") -> Dict[str, float]:
+    """Host-side scalar summary of an EvalResult (namespaced for logs)."""
+    import numpy as np
+    succ = np.asarray(result.success)
+    steps = np.asarray(result.steps)
+    out = {
+        f"{prefix}success_rate": float(succ.mean()),
+        f"{prefix}steps_to_goal": float(steps[succ].mean()) if succ.any() else float("nan"),
+        f"{prefix}chain_probability": float(result.chain_probability),
+        f"{prefix}num_options": float(result.num_options),
+    }
+    ne, ns = np.asarray(result.option_executions), np.asarray(result.option_successes)
+    for k in range(ne.shape[0]):
+        out[f"{prefix}option_success/{k}"] = float(ns[k] / ne[k]) if ne[k] > 0 else float("nan")
+    return out
+
+
+def evaluate(state: T.TrainState, key: Optional[jax.Array] = None, num_episodes: Optional[int] = None,
+             starts=None) -> tuple[Dict[str, float], EvalResult]:
+    """Evaluate from the task start (or `starts`, (N, 2)); returns (scalar metrics, EvalResult).
+
+    The default key depends only on the seed and the iteration, so evaluation never consumes the
+    training PRNG stream.
+    """
+    cfg = state.config
+    if starts is not None:
+        starts = jnp.asarray(starts, jnp.float32).reshape(-1, 2)
+        num_episodes = int(starts.shape[0])
+    n = int(num_episodes or cfg.eval_episodes)
+    if key is None:
+        key = jax.random.fold_in(jax.random.PRNGKey(cfg.seed + 1_000_003),
+                                 int(state.counters.iteration))
+    res = evaluate_episodes(state, key, n, starts)
+    return summarize(res), res
+
+
+# ------------------------------------------------------------------------------------------------
+# Policy constructor
+# ------------------------------------------------------------------------------------------------
+class Policy(NamedTuple):
+    """A deterministic DSC++ (or flat) policy over B environments.
+
+    carry = policy.init(obs)                       # obs (B, obs_dim)
+    carry, action, option = policy.step(carry, obs, key)
+    All functions are pure and jit-able; the policy closes over (copies of) the learned state.
+    """
+
+    init: Any
+    step: Any
+
+
+def make_policy(state: T.TrainState, deterministic: bool = True) -> Policy:
+    """Build a policy from a TrainState: option choice, subgoals, MPC / actor actions."""
+    config = state.config
+    env = T.make_env(config)
+    chain, td3, dyn, dp_table = state.chain, state.td3, state.dyn, state.dp_table
+    goal = jnp.asarray(env.goal, jnp.float32)
+    tcfg = T.td3_config(config)
+
+    def init(obs):
+        return T.exec_init(config, obs, goal)
+
+    def step(ex, obs, key):
+        xy = obs[:, :2]
+        # options that reached their subgoal region or timed out at `obs` end before acting
+        ended, _ = T._option_end(config, env, chain, ex, xy, jnp.zeros(xy.shape[:1]))
+        started = ex.opt_steps > 0
+        ex = ex.replace(option=jnp.where(ended & started, T.NO_OPTION, ex.option))
+        k_opt, k_act = jax.random.split(key)
+        ex = T._choose_options(config, env, chain, dp_table, td3, ex, obs, k_opt)
+        p = T.td3_random_prob(tcfg, state.counters.option_successes)
+        acts = T._policy_actions(config, td3, dyn, obs, ex.subgoal, k_act, not deterministic, p)
+        ex = ex.replace(opt_steps=ex.opt_steps + 1)
+        return ex, acts, ex.option
+
+    return Policy(init=init, step=step)

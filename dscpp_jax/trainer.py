@@ -1,0 +1,539 @@
+"""The DSC++ training loop as pure functions: `init(key, config) -> TrainState` and the jitted
+`train_step(state) -> (state, metrics)`.
+
+One `train_step` advances `num_envs` (B) environments `steps_per_iter` (T) steps inside a
+`lax.scan` (environments vmapped), then learns: TD3+HER gradient steps, dynamics-model steps,
+classifier refits of the options that received new examples, chain growth and the DP refresh.
+No host round trip happens inside; all sizes come from the static `Config`, so the step compiles
+once. With B = 1 and T = one episode it follows the paper's sequential schedule; with many
+environments it is the accelerated variant.
+
+Per environment step:
+1. environments without a running option pick one (walk the chain from the goal option outward;
+   the global option otherwise) and a subgoal for it (robust sampling or the DP table);
+   flat algorithms always run the global option towards the task goal;
+2. act: uniform random during warm-up; else MPC over the learned model (model based) or the
+   actor with Gaussian noise and random actions (model free);
+3. step; the option ends on local success (inside the termination region and within tolerance
+   of the subgoal), on its timeout, or when the episode ends (goal, time limit, NaN physics);
+4. option outcomes are recorded in the chain (positives: start + last `buffer_len` positions;
+   negatives: the start); transitions go to the HER replay (and the model replay);
+5. finished episodes restart, from a diverse start once warm-up is over.
+"""
+from __future__ import annotations
+
+import functools
+from typing import Any, Dict, Optional, Tuple
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+
+from dscpp_jax.config import Config
+from dscpp_jax.replay import Replay, TrajStep, replay_add, replay_flatten, replay_init, replay_sample
+from dscpp_jax.td3 import TD3Config, TD3State, td3_init, td3_explore, td3_act, td3_updates, td3_value, \
+    td3_random_prob
+
+PyTree = Any
+NO_OPTION = -1
+GLOBAL_OPTION = 0
+GOAL_OPTION = 1
+
+
+# ------------------------------------------------------------------------------------------------
+# State
+# ------------------------------------------------------------------------------------------------
+@flax.struct.dataclass
+class ExecState:
+    """Per-environment option execution (leading axis B)."""
+
+    option: jax.Array      # int32, NO_OPTION when none runs
+    subgoal: jax.Array     # (2,) the goal the running option pursues
+    opt_steps: jax.Array   # int32 steps since the option started
+    start_xy: jax.Array    # (2,) where the option started
+    start_obs: jax.Array   # (obs_dim,) observation where the option started (DP inputs)
+    traj: jax.Array        # (buffer_len, 2) last positions, oldest first
+    traj_count: jax.Array  # int32 number of valid rows at the end of `traj`
+    seg_id: jax.Array      # int32, increments at every option start (HER segments)
+
+
+@flax.struct.dataclass
+class Counters:
+    env_steps: jax.Array
+    episodes: jax.Array
+    iteration: jax.Array
+    episode_successes: jax.Array
+    option_successes: jax.Array
+    warmup_done: jax.Array   # bool: the model pretraining burst ran
+
+
+@flax.struct.dataclass
+class TrainState:
+    env_state: PyTree
+    exec: ExecState
+    chain: PyTree
+    td3: TD3State
+    dyn: PyTree
+    replay: Replay
+    model_replay: PyTree
+    dp_table: PyTree
+    counters: Counters
+    key: jax.Array
+    config: Config = flax.struct.field(pytree_node=False)
+
+
+# ------------------------------------------------------------------------------------------------
+# Component configs derived from the run config
+# ------------------------------------------------------------------------------------------------
+@functools.lru_cache(maxsize=None)
+def make_env(config: Config):
+    import envs
+    return envs.make(config.env, episode_length=config.episode_length,
+                     goal_tolerance=config.goal_tolerance)
+
+
+def td3_config(config: Config) -> TD3Config:
+    base = TD3Config.model_based if config.model_based else TD3Config.model_free
+    kw = dict(batch_size=config.td3_batch_size, hidden=(config.td3_hidden, config.td3_hidden),
+              discount=config.discount, exploration_noise=config.action_noise,
+              replay_capacity=config.replay_capacity,
+              actor_lr=config.effective_td3_lr, critic_lr=config.effective_td3_lr)
+    if config.random_action_prob >= 0:
+        kw.update(random_action_prob=config.random_action_prob)
+        if config.model_based:
+            kw.update(random_action_prob_start=config.random_action_prob)
+    if not config.model_based:
+        kw.update(random_action_prob_start=config.mf_initial_random_prob,
+                  random_action_switch_successes=config.mf_random_decay_successes)
+    return base(**kw)
+
+
+def _obs_dim(config: Config) -> int:
+    return int(make_env(config).observation_size)
+
+
+def _act_dim(config: Config) -> int:
+    return int(make_env(config).action_size)
+
+
+# ------------------------------------------------------------------------------------------------
+# init
+# ------------------------------------------------------------------------------------------------
+def exec_init(config: Config, obs, goal) -> ExecState:
+    """No option running in any of the B environments (obs: (B, obs_dim))."""
+    B = obs.shape[0]
+    return ExecState(
+        option=jnp.full((B,), NO_OPTION, jnp.int32),
+        subgoal=jnp.broadcast_to(jnp.asarray(goal, jnp.float32), (B, 2)),
+        opt_steps=jnp.zeros((B,), jnp.int32),
+        start_xy=obs[:, :2],
+        start_obs=obs,
+        traj=jnp.zeros((B, config.buffer_len, 2), jnp.float32),
+        traj_count=jnp.zeros((B,), jnp.int32),
+        seg_id=jnp.zeros((B,), jnp.int32),
+    )
+
+
+def init(key: jax.Array, config: Config) -> TrainState:
+    """A fresh TrainState for `config` (validated first). jit-/vmap-able over `key`."""
+    config.validate()
+    env = make_env(config)
+    B, od, ad = config.num_envs, env.observation_size, env.action_size
+    k_env, k_td3, k_dyn, k_run = jax.random.split(key, 4)
+    env_state = jax.vmap(env.reset)(jax.random.split(k_env, B))
+    goal = jnp.asarray(env.goal, jnp.float32)
+    ex = exec_init(config, env_state.obs, env.goal)
+    td3 = td3_init(k_td3, od, 2, ad, td3_config(config))
+    example = TrajStep(obs=jnp.zeros((od,), jnp.float32), action=jnp.zeros((ad,), jnp.float32),
+                       next_obs=jnp.zeros((od,), jnp.float32), goal=jnp.zeros((2,), jnp.float32),
+                       seg_id=jnp.zeros((), jnp.int32))
+    replay = replay_init(example, config.replay_capacity, B)
+    if config.model_based:
+        dyn = _dynamics_init(k_dyn, od, ad, config)
+        model_replay = replay_init((jnp.zeros((od,)), jnp.zeros((ad,)), jnp.zeros((od,))),
+                                   config.model_capacity, B)
+    else:
+        dyn, model_replay = None, None
+    chain = _chain_init(config, goal) if config.hierarchical else None
+    dp_table = _dp_table_init(config, chain) if (config.hierarchical and config.subgoal == "dp") \
+        else None
+    z = jnp.zeros((), jnp.int32)
+    counters = Counters(env_steps=z, episodes=z, iteration=z, episode_successes=z,
+                        option_successes=z, warmup_done=jnp.zeros((), bool))
+    return TrainState(env_state=env_state, exec=ex, chain=chain, td3=td3, dyn=dyn, replay=replay,
+                      model_replay=model_replay, dp_table=dp_table, counters=counters, key=k_run,
+                      config=config)
+
+
+# ------------------------------------------------------------------------------------------------
+# Acting (shared by training and evaluation)
+# ------------------------------------------------------------------------------------------------
+def _choose_options(config: Config, env, chain, dp_table, td3, ex: ExecState, obs, key,
+                    active=None):
+    """Start an option (and pick its subgoal) in every env whose `ex.option` is NO_OPTION."""
+    B = obs.shape[0]
+    xy = obs[:, :2]
+    goal = jnp.asarray(env.goal, jnp.float32)
+    need = ex.option == NO_OPTION
+    if active is not None:
+        need = need & active
+    if config.hierarchical:
+        keys = jax.random.split(key, B)
+        new_opt = _select_option(config, chain, xy)                            # (B,)
+        sub = _pick_subgoals(config, chain, dp_table, td3, new_opt, obs, keys)  # (B, 2)
+    else:
+        new_opt = jnp.full((B,), GLOBAL_OPTION, jnp.int32)
+        sub = jnp.broadcast_to(goal, (B, 2))
+    return ex.replace(
+        option=jnp.where(need, new_opt, ex.option),
+        subgoal=jnp.where(need[:, None], sub, ex.subgoal),
+        opt_steps=jnp.where(need, 0, ex.opt_steps),
+        start_xy=jnp.where(need[:, None], xy, ex.start_xy),
+        start_obs=jnp.where(need[:, None], obs, ex.start_obs),
+        traj_count=jnp.where(need, 0, ex.traj_count),
+        seg_id=ex.seg_id + need.astype(jnp.int32),
+    )
+
+
+def _policy_actions(config: Config, td3, dyn, obs, goals, key, explore: bool, rand_prob):
+    """(B, obs), (B, 2) -> (B, act): MPC or the actor; with exploration when `explore`."""
+    B = obs.shape[0]
+    tcfg = td3_config(config)
+    if config.model_based:
+        value_fn = None
+        if config.uses_value_in_mpc:
+            value_fn = _value_fn(config, td3)
+        k_mpc, k_r, k_u = jax.random.split(key, 3)
+        acts = _mpc_actions(config, dyn, k_mpc, obs, goals, value_fn)
+        if explore:
+            p = config.effective_random_prob
+            rand = jax.random.uniform(k_u, acts.shape, acts.dtype, -1.0, 1.0)
+            use = jax.random.uniform(k_r, (B,)) < p
+            acts = jnp.where(use[:, None], rand, acts)
+        return acts
+    if explore:
+        return td3_explore(tcfg, td3.actor_params, key, obs, goals, random_prob=rand_prob)
+    return td3_act(tcfg, td3.actor_params, obs, goals)
+
+
+def _option_end(config: Config, env, chain, ex: ExecState, next_xy, done):
+    """Local success / timeout / episode end of the running options. Returns (ended, success)."""
+    running = ex.option != NO_OPTION
+    near = jnp.linalg.norm(next_xy - ex.subgoal, axis=-1) <= config.goal_tolerance
+    if config.hierarchical:
+        goal = jnp.asarray(env.goal, jnp.float32)
+        term = _option_terminates(config, chain, ex.option, next_xy, goal)
+        success = running & term & near
+        timeout = ex.opt_steps + 1 >= config.option_timeout
+    else:
+        success = running & near
+        timeout = jnp.zeros_like(running)
+    ended = running & (success | timeout | (done > 0))
+    return ended, success
+
+
+def _push_traj(ex: ExecState, xy):
+    traj = jnp.concatenate([ex.traj[:, 1:], xy[:, None, :]], axis=1)
+    return ex.replace(traj=traj, traj_count=jnp.minimum(ex.traj_count + 1, ex.traj.shape[1]),
+                      opt_steps=ex.opt_steps + 1)
+
+
+# ------------------------------------------------------------------------------------------------
+# train_step
+# ------------------------------------------------------------------------------------------------
+def _rollout(state: TrainState, key) -> Tuple[TrainState, Dict[str, jax.Array]]:
+    config = state.config
+    env = make_env(config)
+    B = config.num_envs
+    warmup = state.counters.episodes < config.warmup_episodes
+    tcfg = td3_config(config)
+    n_succ = state.counters.option_successes if config.hierarchical else state.counters.episode_successes
+    rand_prob = td3_random_prob(tcfg, n_succ)
+    td3, dyn, dp_table = state.td3, state.dyn, state.dp_table
+    act_dim = env.action_size
+
+    def body(carry, k):
+        es, ex, chain, replay, model_replay, acc = carry
+        k_opt, k_act, k_rand, k_reset, k_start = jax.random.split(k, 5)
+        obs = es.obs
+        xy = obs[:, :2]
+        ex = _choose_options(config, env, chain, dp_table, td3, ex, obs, k_opt)
+        rand_acts = jax.random.uniform(k_rand, (B, act_dim), jnp.float32, -1.0, 1.0)
+        acts = jax.lax.cond(
+            warmup, lambda: rand_acts,
+            lambda: _policy_actions(config, td3, dyn, obs, ex.subgoal, k_act, True, rand_prob))
+        nes = jax.vmap(env.step)(es, acts)
+        next_xy = nes.obs[:, :2]
+        nan = nes.info["nan"] > 0
+        ex = _push_traj(ex, next_xy)
+        ended, success = _option_end(config, env, chain, ex, next_xy, nes.done)
+        # record option outcomes (not during warm-up: random actions say nothing about options)
+        if config.hierarchical:
+            events = ended & ~warmup
+            chain = _record_outcomes(config, chain, ex, success, events)
+        replay = replay_add(replay, TrajStep(obs=obs, action=acts, next_obs=nes.obs,
+                                             goal=ex.subgoal, seg_id=ex.seg_id), ~nan)
+        if config.model_based:
+            model_replay = replay_add(model_replay, (obs, acts, nes.obs), ~nan)
+        done = nes.done > 0
+        ep_success = nes.info["success"] > 0
+        acc = dict(acc)
+        acc["episodes"] = acc["episodes"] + jnp.sum(done)
+        acc["episode_successes"] = acc["episode_successes"] + jnp.sum(done & ep_success)
+        acc["option_events"] = acc["option_events"] + jnp.sum(ended)
+        acc["option_successes"] = acc["option_successes"] + jnp.sum(ended & success)
+        acc["nan_episodes"] = acc["nan_episodes"] + jnp.sum(nan)
+        acc["ep_len_sum"] = acc["ep_len_sum"] + jnp.sum(jnp.where(done, nes.info["steps"], 0))
+        ex = ex.replace(option=jnp.where(ended, NO_OPTION, ex.option))
+
+        # auto-reset finished episodes (diverse starts after warm-up)
+        def reset_all(_):
+            ks = jax.random.split(k_reset, B)
+            if config.diverse_starts:
+                starts = jax.vmap(env.sample_start)(jax.random.split(k_start, B))
+                fresh_div = jax.vmap(env.reset_at)(ks, starts)
+                fresh_task = jax.vmap(env.reset)(ks)
+                fresh = jax.tree_util.tree_map(lambda a, b: jnp.where(warmup, a, b),
+                                               fresh_task, fresh_div)
+            else:
+                fresh = jax.vmap(env.reset)(ks)
+            return jax.tree_util.tree_map(
+                lambda f, n: jnp.where(done.reshape((B,) + (1,) * (n.ndim - 1)), f, n), fresh, nes)
+
+        nes = jax.lax.cond(jnp.any(done), reset_all, lambda _: nes, None)
+        return (nes, ex, chain, replay, model_replay, acc), None
+
+    K = config.max_options
+    z = jnp.zeros((), jnp.int32)
+    acc0 = dict(episodes=z, episode_successes=z, option_events=z, option_successes=z,
+                nan_episodes=z, ep_len_sum=z)
+    carry = (state.env_state, state.exec, state.chain, state.replay, state.model_replay, acc0)
+    carry, _ = jax.lax.scan(body, carry, jax.random.split(key, config.steps_per_iter))
+    es, ex, chain, replay, model_replay, acc = carry
+    c = state.counters
+    counters = c.replace(
+        env_steps=c.env_steps + B * config.steps_per_iter,
+        episodes=c.episodes + acc["episodes"],
+        episode_successes=c.episode_successes + acc["episode_successes"],
+        option_successes=c.option_successes + acc["option_successes"],
+    )
+    state = state.replace(env_state=es, exec=ex, chain=chain, replay=replay,
+                          model_replay=model_replay, counters=counters)
+    n_ep = jnp.maximum(acc["episodes"], 1)
+    metrics = {
+        "train/episodes_finished": acc["episodes"].astype(jnp.float32),
+        "train/episode_success": jnp.where(acc["episodes"] > 0,
+                                           acc["episode_successes"] / n_ep, jnp.nan),
+        "train/episode_length": jnp.where(acc["episodes"] > 0, acc["ep_len_sum"] / n_ep, jnp.nan),
+        "train/option_events": acc["option_events"].astype(jnp.float32),
+        "train/option_success": jnp.where(acc["option_events"] > 0,
+                                          acc["option_successes"] / jnp.maximum(acc["option_events"], 1),
+                                          jnp.nan),
+        "train/nan_physics_steps": acc["nan_episodes"].astype(jnp.float32),
+        "train/warmup": warmup.astype(jnp.float32),
+        "train/random_action_prob": rand_prob,
+    }
+    return state, metrics
+
+
+def _learn(state: TrainState, key) -> Tuple[TrainState, Dict[str, jax.Array]]:
+    config = state.config
+    env = make_env(config)
+    tcfg = td3_config(config)
+    k_td3, k_dyn, k_pre = jax.random.split(key, 3)
+    metrics: Dict[str, jax.Array] = {}
+    max_seg = config.option_timeout if config.hierarchical else config.episode_length
+
+    def sample_fn(k, buf, n):
+        return _her_sample(k, buf, n, strategy=config.her_strategy,
+                                 relabel_prob=config.her_relabel_prob, max_segment=max_seg,
+                                 goal_tolerance=config.goal_tolerance)
+
+    td3, tm = td3_updates(tcfg, state.td3, state.replay, k_td3, config.td3_updates, sample_fn)
+    metrics.update({f"td3/{k}": v for k, v in tm.items()})
+    finite = {"td3": _all_finite(td3)}
+    dyn = state.dyn
+    counters = state.counters
+    if config.model_based:
+        warmup = counters.episodes < config.warmup_episodes
+        dyn = _dynamics_fit_normaliser(config, dyn, state.model_replay)
+        dyn, dm = _dynamics_updates(config, dyn, state.model_replay, k_dyn, config.dyn_updates)
+        # one longer burst once the warm-up data is in (the original's 50 epochs)
+        do_pre = (~warmup) & (~counters.warmup_done)
+        if config.dyn_pretrain_steps > 0:
+            dyn = jax.lax.cond(
+                do_pre,
+                lambda d: _dynamics_updates(config, d, state.model_replay, k_pre,
+                                                  config.dyn_pretrain_steps)[0],
+                lambda d: d, dyn)
+        counters = counters.replace(warmup_done=counters.warmup_done | do_pre)
+        metrics.update({f"dynamics/{k}": v for k, v in dm.items()})
+        finite["dynamics"] = _all_finite(dyn)
+    chain, dp_table = state.chain, state.dp_table
+    if config.hierarchical:
+        chain = _refit(config, chain)
+        chain = _grow_chain(config, chain, jnp.asarray(env.start, jnp.float32))
+        if config.subgoal == "dp":
+            dp_table = _dp_value_table(config, chain, _value_fn(config, td3))
+        metrics.update(_chain_metrics(config, chain, env.start))
+        finite["classifiers"] = _all_finite(chain.clf)
+    for k, v in finite.items():
+        metrics[f"finite/{k}"] = v.astype(jnp.float32)
+    counters = counters.replace(iteration=counters.iteration + 1)
+    state = state.replace(td3=td3, dyn=dyn, chain=chain, dp_table=dp_table, counters=counters)
+    return state, metrics
+
+
+def _all_finite(tree) -> jax.Array:
+    leaves = [jnp.all(jnp.isfinite(x)) for x in jax.tree_util.tree_leaves(tree)
+              if hasattr(x, "dtype") and jnp.issubdtype(x.dtype, jnp.floating)]
+    return jnp.all(jnp.stack(leaves)) if leaves else jnp.ones((), bool)
+
+
+def train_step_impl(state: TrainState) -> Tuple[TrainState, Dict[str, jax.Array]]:
+    """One iteration (un-jitted; use `train_step`)."""
+    key, k_roll, k_learn = jax.random.split(state.key, 3)
+    state = state.replace(key=key)
+    state, m_roll = _rollout(state, k_roll)
+    state, m_learn = _learn(state, k_learn)
+    c = state.counters
+    metrics = {**m_roll, **m_learn,
+               "counters/env_steps": c.env_steps.astype(jnp.float32),
+               "counters/episodes": c.episodes.astype(jnp.float32),
+               "counters/iteration": c.iteration.astype(jnp.float32)}
+    return state, metrics
+
+
+train_step = jax.jit(train_step_impl)
+"""Jitted `train_step(state) -> (state, metrics)`; compiles once per Config."""
+
+
+# ------------------------------------------------------------------------------------------------
+# Thin adapters over the component modules (one place to follow their signatures)
+# ------------------------------------------------------------------------------------------------
+def _her_sample(key, buf, n, **kw):
+    from dscpp_jax.her import her_sample
+    return her_sample(key, buf, n, **kw)
+
+
+def dyn_config(config: Config):
+    from dscpp_jax.dynamics import DynamicsConfig
+    return DynamicsConfig(ensemble_size=config.dyn_ensemble,
+                          hidden=(config.dyn_hidden, config.dyn_hidden), lr=config.dyn_lr,
+                          batch_size=config.dyn_batch_size)
+
+
+def _dynamics_init(key, obs_dim, act_dim, config: Config):
+    from dscpp_jax.dynamics import dynamics_init
+    return dynamics_init(key, obs_dim, act_dim, dyn_config(config))
+
+
+def _dynamics_fit_normaliser(config: Config, dyn, model_replay: Replay):
+    from dscpp_jax.dynamics import dynamics_fit_normaliser
+    obs, act, nxt = model_replay.data
+    return dynamics_fit_normaliser(dyn, obs, act, nxt, model_replay.valid, cfg=dyn_config(config))
+
+
+def _dynamics_updates(config: Config, dyn, model_replay: Replay, key, num_steps: int):
+    from dscpp_jax.dynamics import dynamics_train
+    obs, act, nxt = model_replay.data
+    dyn, m = dynamics_train(dyn_config(config), dyn, (obs, act, nxt, model_replay.valid), key,
+                            int(num_steps))
+    return dyn, {"loss": jnp.mean(m["loss"]), "loss_last": m["loss"][-1]}
+
+
+def mpc_config(config: Config):
+    from dscpp_jax.mpc import MPCConfig
+    return MPCConfig(num_samples=config.mpc_samples, horizon=config.mpc_horizon,
+                     discount=config.mpc_discount, goal_tolerance=config.goal_tolerance,
+                     use_value=config.uses_value_in_mpc, compute_dtype=config.mpc_dtype)
+
+
+def _mpc_actions(config: Config, dyn, key, obs, goals, value_fn):
+    from dscpp_jax.mpc import mpc_actions
+    return mpc_actions(mpc_config(config), dyn_config(config), dyn, key, obs, goals,
+                       value_fn=value_fn)
+
+
+def chain_config(config: Config):
+    from dscpp_jax.options import ChainConfig
+    return ChainConfig(max_options=config.max_options, gestation=config.gestation,
+                       buffer_len=config.buffer_len, option_timeout=config.option_timeout,
+                       max_pos_traj=config.max_pos_traj, max_neg=config.max_neg,
+                       variant=config.classifier_variant, goal_tolerance=config.goal_tolerance,
+                       subgoal_tolerance=config.goal_tolerance, obs_dim=_obs_dim(config),
+                       svm_gamma=config.svm_gamma)
+
+
+def _chain_init(config: Config, goal):
+    from dscpp_jax.options import chain_init
+    return chain_init(chain_config(config), goal)
+
+
+def _dp_table_init(config: Config, chain):
+    from dscpp_jax.subgoals import dp_table_init
+    return dp_table_init(chain)
+
+
+def _select_option(config: Config, chain, xy):
+    from dscpp_jax.options import select_option
+    return jax.vmap(lambda p: select_option(chain, p))(xy)
+
+
+def _value_fn(config: Config, td3):
+    tcfg = td3_config(config)
+
+    def value_fn(s, g):
+        return td3_value(tcfg, td3, s, jnp.broadcast_to(g, s[..., :2].shape))
+    return value_fn
+
+
+def _pick_subgoals(config: Config, chain, dp_table, td3, options, obs, keys):
+    """(B, 2) subgoals for the options just chosen in B envs."""
+    from dscpp_jax import subgoals
+    if config.algo in ("dsc", "dual"):
+        # baseline DSC: each option pursues one target at a time (a key fixed per option and
+        # chain size), not a goal re-sampled at every execution
+        base = jax.random.PRNGKey(12345)
+        keys = jax.vmap(lambda o: jax.random.fold_in(jax.random.fold_in(base, o),
+                                                     chain.num_options))(options)
+        return jax.vmap(lambda k, o: subgoals.robust_subgoal(k, chain, o))(keys, options)
+    if config.subgoal == "dp":
+        vf = _value_fn(config, td3)
+        return jax.vmap(lambda o, s: subgoals.pick_subgoal(dp_table, chain, o, s, vf))(options, obs)
+    return jax.vmap(lambda k, o: subgoals.robust_subgoal(k, chain, o))(keys, options)
+
+
+def _option_terminates(config: Config, chain, options, xy, goal):
+    from dscpp_jax.options import option_terminates
+    o = jnp.clip(options, 0)
+    return jax.vmap(lambda oo, p: option_terminates(chain, oo, p, goal))(o, xy)
+
+
+def _record_outcomes(config: Config, chain, ex: ExecState, success, events):
+    from dscpp_jax.options import record_outcomes
+    T_ = ex.traj.shape[1]
+    tmask = jnp.arange(T_)[None, :] >= (T_ - ex.traj_count)[:, None]
+    return record_outcomes(chain, jnp.clip(ex.option, 0), success, ex.start_xy, ex.traj, tmask,
+                           events, start_obs=ex.start_obs)
+
+
+def _refit(config: Config, chain):
+    from dscpp_jax.options import refit
+    return refit(chain)
+
+
+def _grow_chain(config: Config, chain, start_xy):
+    from dscpp_jax.options import grow_chain
+    return grow_chain(chain, start_xy)
+
+
+def _dp_value_table(config: Config, chain, value_fn):
+    from dscpp_jax.subgoals import dp_value_table
+    return dp_value_table(chain, value_fn, gamma=config.mpc_discount)
+
+
+def _chain_metrics(config: Config, chain, start_xy=None):
+    from dscpp_jax.options import chain_metrics
+    m = chain_metrics(chain, None if start_xy is None else jnp.asarray(start_xy, jnp.float32))
+    return {f"options/{k}": jnp.asarray(v, jnp.float32) for k, v in m.items()}
