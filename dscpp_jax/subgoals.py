@@ -9,7 +9,8 @@ first, then the last ``buffer_len`` positions) whose xy and the four points xy +
 all lie in ``p``'s pessimistic region; else a random positive state of ``p`` inside that region;
 else (never for a mature parent with fitted classifiers) a random positive state of ``p``; else the
 task goal. Which stored states qualify is cached in the chain by ``options.refit``, so a sample
-costs O(P * L) and no classifier evaluation.
+costs O(P * L) and no classifier evaluation. A uniformly random trajectory among those with a
+qualifying state is drawn directly: the same distribution as shuffling and taking the first.
 
 Hierarchical optimality (:func:`dp_value_table`, the paper's Algorithm 1): for every option ``o``
 its *input* states are the start states of its positive trajectories; its *output* states are its
@@ -68,15 +69,15 @@ def robust_subgoal_with_source(key, chain: Chain, option):
     P, L = cfg.max_pos_traj, cfg.traj_len
     option = jnp.asarray(option, jnp.int32)
     p = jnp.clip(chain.parent[option], 0)
-    k_perm, k_pess, k_any = jax.random.split(key, 3)
+    k_traj, k_pess, k_any = jax.random.split(key, 3)
     xy = chain.pos_xy[p]                                   # (P, L, 2)
     robust = chain.robust_ok[p]                            # (P, L)
     pess = chain.pess_ok[p]
     valid = chain.pos_mask[p]
-    # shuffled trajectories; first trajectory with a robust state, its first robust state
-    perm = jax.random.permutation(k_perm, P)
-    r_perm = robust[perm]
-    t = perm[jnp.argmax(r_perm.any(axis=1))]
+    # "the first trajectory of a shuffled list that has a qualifying state" is a uniformly random
+    # trajectory among those that have one: draw it directly (O(P), no sort); then its first
+    # qualifying state (start state first)
+    t = _random_true(k_traj, robust.any(axis=1))
     robust_xy = xy[t, jnp.argmax(robust[t])]
     pess_xy = xy.reshape(P * L, 2)[_random_true(k_pess, pess.reshape(-1))]
     any_xy = xy.reshape(P * L, 2)[_random_true(k_any, valid.reshape(-1))]

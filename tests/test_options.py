@@ -145,6 +145,43 @@ def test_ring_to_chronological():
     np.testing.assert_array_equal(xy[m][:, 0], ring[[0, 1, 2], 0])
 
 
+def test_refit_fits_dirty_rows_on_their_examples():
+    """refit hands each dirty row its own positives (start + trajectory) and negatives:
+    the result decides like scikit-learn's SVC -> OneClassSVM pipeline on the same examples."""
+    from dscpp_jax import initiation as I
+    from sklearn.svm import SVC, OneClassSVM
+
+    ch = O.chain_init(CFG, GOAL_XY)
+    ch = ch.replace(status=jnp.array([O.ALWAYS, O.MATURE, O.GESTATION, O.FREE, O.FREE]),
+                    parent=jnp.array([-1, -1, 1, -1, -1]), num_options=jnp.asarray(3))
+    ch = _events(ch, 1, (0.0, 7.0), 5, n_fail=3, seed=7, fail_center=(2.0, 5.0))
+    ch = _events(ch, 0, (0.0, 0.0), 2, n_fail=2, seed=9)     # the global option: counters only
+    np.testing.assert_array_equal(ch.dirty, [False, True, False, False, False])
+    assert int(ch.executions[0]) == 4 and int(ch.pos_count[0]) == int(ch.neg_count[0]) == 0
+    out = refit(ch)
+    np.testing.assert_array_equal(out.fitted, [False, True, False, False, False])
+    assert not bool(out.dirty.any())
+    pos = np.asarray(ch.pos_xy[1])[np.asarray(ch.pos_mask[1])]
+    neg = np.asarray(ch.neg_xy[1])[np.asarray(ch.neg_mask[1])]
+    assert len(pos) > 5 * CFG.buffer_len and len(neg) == 3
+    X = np.concatenate([pos, neg])
+    y = np.r_[np.ones(len(pos)), np.zeros(len(neg))]
+    svc = SVC(kernel="rbf", gamma=0.5, C=1.0).fit(X, y)
+    occ = OneClassSVM(kernel="rbf", gamma=0.5, nu=0.1).fit(pos[svc.predict(pos) == 1])
+    grid = np.stack(np.meshgrid(np.linspace(-4, 6, 31), np.linspace(0, 12, 31)), -1)
+    grid = grid.reshape(-1, 2).astype(np.float32)
+    row = _row(out, 1)
+    f_opt = svc.decision_function(grid)
+    f_pes = occ.decision_function(grid)
+    got_opt = np.asarray(I.optimistic_contains(row, grid))
+    got_pes = np.asarray(I.pessimistic_contains(row, grid))
+    sure_opt = np.abs(f_opt) > 1e-2
+    sure_pes = np.abs(f_pes) > 1e-2 * np.abs(f_pes).max()
+    np.testing.assert_array_equal(got_opt[sure_opt], f_opt[sure_opt] >= 0)
+    np.testing.assert_array_equal(got_pes[sure_pes], f_pes[sure_pes] > 0)
+    assert got_pes.any() and not got_pes.all() and not got_opt.all()
+
+
 # ------------------------------------------------------------------------------------------------
 # the chain state machine, driven by scripted outcomes (real classifiers)
 
@@ -325,33 +362,38 @@ def test_chain_probability_and_rates():
 def test_public_functions_jit_without_retracing(grown_chain):
     traces = {}
 
-    def counted(name, f, **kw):
+    def counted(name, f):
         def g(*a):
             traces[name] = traces.get(name, 0) + 1
             return f(*a)
-        return jax.jit(g, **kw)
+        return jax.jit(g)
 
     fns = {
-        "can_initiate": counted("can_initiate", O.can_initiate),
-        "select_option": counted("select_option", lambda c, x: jax.vmap(
-            lambda y: O.select_option(c, y))(x)),
         "terminates": counted("terminates", lambda c, o, x: jax.vmap(
             lambda a, b: O.option_terminates(c, a, b))(o, x)),
         "local_success": counted("local_success", lambda c, o, x: jax.vmap(
             lambda a, b: O.local_success(c, a, b, b))(o, x)),
-        "grow": counted("grow", O.grow_chain),
-        "refit": counted("refit", O.refit),
         "metrics": counted("metrics", O.chain_metrics),
+        "probability": counted("probability", O.chain_probability),
     }
-    for key in ("link2_gestating", "covered"):
+    module_jits = {"refit": refit, "grow": grow, "select": select, "can_init": can_init,
+                   "record": record}
+    module_jits = {k: f for k, f in module_jits.items() if hasattr(f, "_cache_size")}
+    sizes = None
+    for n, key in enumerate(("link2_gestating", "covered", "link3_created")):
         ch = grown_chain[key]
-        xy = np.random.default_rng(0).normal(size=(3, 2)).astype(np.float32)
+        xy = np.random.default_rng(n).normal(size=(3, 2)).astype(np.float32)
         o = np.array([1, 2, 3], np.int32)
-        fns["can_initiate"](ch, xy[0])
-        fns["select_option"](ch, xy)
         fns["terminates"](ch, o, xy)
         fns["local_success"](ch, o, xy)
-        fns["grow"](ch, START_XY)
-        fns["refit"](ch)
         fns["metrics"](ch, START_XY)
+        fns["probability"](ch)
+        can_init(ch, xy[0])
+        select(ch, xy[n])
+        grow(ch, xy[n])
+        refit(ch)
+        _events(ch, n + 1, xy[n], n + 1, seed=n)
+        if sizes is None:   # (the module-level jits may have compiled earlier: count from here)
+            sizes = {k: f._cache_size() for k, f in module_jits.items()}
     assert traces == {k: 1 for k in fns}, traces
+    assert {k: f._cache_size() for k, f in module_jits.items()} == sizes
