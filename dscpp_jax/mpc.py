@@ -65,6 +65,8 @@ class MPCConfig:
     ensemble_mode: "member" (one member per sequence) or "mean" (mean of members at each step).
     backend: "auto", "xla" or "pallas" (the fused GPU kernel; bfloat16 only, member mode only).
     block_rows, num_warps, num_stages, hidden_chunk: tiling of the fused kernel.
+    value_precision: matmul precision of the value_fn call (None = JAX default; "bfloat16" runs the
+        critic's float32 matmuls as single bf16 passes).
     """
 
     num_samples: int = 14000
@@ -79,6 +81,7 @@ class MPCConfig:
     num_warps: int = 4
     num_stages: int = 1
     hidden_chunk: int = 128
+    value_precision: Optional[str] = None
 
     def __post_init__(self):
         if self.num_samples < 1 or self.horizon < 1:
@@ -377,9 +380,13 @@ def _check_pallas(mpc_cfg, dyn_cfg):
         raise ValueError("backend='pallas' supports ensemble_mode='member' only: use backend='xla' for 'mean'")
 
 
-def _values(value_fn, final_states, goal):
+def _values(value_fn, final_states, goal, precision=None):
     """vmap the caller's value_fn(states (M, obs), goal (2,)) -> (M,) over environments."""
-    v = jax.vmap(value_fn)(final_states, goal)
+    if precision is None:
+        v = jax.vmap(value_fn)(final_states, goal)
+    else:
+        with jax.default_matmul_precision(precision):
+            v = jax.vmap(value_fn)(final_states, goal)
     if v.shape != final_states.shape[:2]:
         raise ValueError(f"value_fn must return (M,) values per env, got {v.shape[1:]} for "
                          f"states {final_states.shape[1:]}")
@@ -399,7 +406,7 @@ def sequence_costs(mpc_cfg: MPCConfig, dyn_cfg: DynamicsConfig, dyn_state: Dynam
     if backend == "xla":
         fd = dynamics_fold(dyn_cfg, dyn_state)
         xy, final = _rollout_xla(mpc_cfg, dyn_cfg, fd, obs, actions)
-        v = _values(value_fn, final, goal) if mpc_cfg.use_value else None
+        v = _values(value_fn, final, goal, mpc_cfg.value_precision) if mpc_cfg.use_value else None
         return mpc_cost(mpc_cfg, xy, goal, v)
     _check_pallas(mpc_cfg, dyn_cfg)
     fd = dynamics_fold(dyn_cfg, dyn_state, jnp.bfloat16)
@@ -413,7 +420,7 @@ def _finish_pallas(mpc_cfg, fd, obs, goal, acts_k, value_fn, M, dyn_cfg, interpr
     step_cost = step_cost[:, :M]
     final = sk[:, :M, :obs.shape[-1]]
     if mpc_cfg.use_value:
-        v = _values(value_fn, final, goal)
+        v = _values(value_fn, final, goal, mpc_cfg.value_precision)
         at_goal = jnp.sum(jnp.square(final[..., :2] - goal[:, None, :]), -1) <= jnp.float32(mpc_cfg.goal_tolerance) ** 2
         return _terminal(mpc_cfg, step_cost, at_goal, v), final
     return step_cost, final
@@ -440,7 +447,7 @@ def mpc_actions(mpc_cfg: MPCConfig, dyn_cfg: DynamicsConfig, dyn_state: Dynamics
         actions = sample_action_sequences(key, mpc_cfg, B, act_dim)
         fd = dynamics_fold(dyn_cfg, dyn_state)
         xy, final = _rollout_xla(mpc_cfg, dyn_cfg, fd, obs, actions)
-        v = _values(value_fn, final, goal) if mpc_cfg.use_value else None
+        v = _values(value_fn, final, goal, mpc_cfg.value_precision) if mpc_cfg.use_value else None
         cost = mpc_cost(mpc_cfg, xy, goal, v)
         first = actions[:, :, 0, :]
     else:
@@ -490,7 +497,7 @@ def shooting_actions(mpc_cfg: MPCConfig, step_fn: Callable, key, obs, goal, acti
 
     final, xy = jax.lax.scan(body, s0, jnp.moveaxis(actions, 2, 0))
     final = final.reshape(B, M, -1)
-    v = _values(value_fn, final, goal) if mpc_cfg.use_value else None
+    v = _values(value_fn, final, goal, mpc_cfg.value_precision) if mpc_cfg.use_value else None
     cost = mpc_cost(mpc_cfg, jnp.moveaxis(xy, 0, 2), goal, v)
     idx = jnp.argmin(cost, axis=-1)
     return jnp.take_along_axis(actions[:, :, 0, :], idx[:, None, None], axis=1)[:, 0, :]
