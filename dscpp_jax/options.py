@@ -421,11 +421,16 @@ def refit(chain: Chain, mask=None) -> Chain:
         raise ValueError(f"refit: mask must have shape ({K},), got {mask.shape}")
     has_pos = chain.pos_mask[:, :, 0].any(axis=1)
     do = mask & chain.active & (jnp.arange(K) != GLOBAL) & has_pos
-    clf = _initiation().fit_initiation_batch(
-        chain.pos_xy.reshape(K, P * L, 2), chain.pos_mask.reshape(K, P * L), chain.neg_xy,
-        chain.neg_mask, initiation_config(cfg), prev=chain.clf, dirty=do)
-    chain = chain.replace(clf=clf, fitted=_fitted_flags(clf), dirty=chain.dirty & ~mask)
-    return refresh_subgoal_cache(chain, do)
+
+    def fit(c):
+        clf = _initiation().fit_initiation_batch(
+            c.pos_xy.reshape(K, P * L, 2), c.pos_mask.reshape(K, P * L), c.neg_xy, c.neg_mask,
+            initiation_config(cfg), prev=c.clf, dirty=do)
+        return refresh_subgoal_cache(c.replace(clf=clf, fitted=_fitted_flags(clf)), do)
+
+    # nothing to fit (most iterations late in training): skip the set-up work entirely
+    chain = jax.lax.cond(do.any(), fit, lambda c: c, chain)
+    return chain.replace(dirty=chain.dirty & ~mask)
 
 
 # ------------------------------------------------------------------------------------------------

@@ -397,3 +397,25 @@ def test_public_functions_jit_without_retracing(grown_chain):
             sizes = {k: f._cache_size() for k, f in module_jits.items()}
     assert traces == {k: 1 for k in fns}, traces
     assert {k: f._cache_size() for k, f in module_jits.items()} == sizes
+
+
+def test_single_classifier_variant():
+    """Baseline DSC: one classifier per option, both the initiation set and the child's target."""
+    from dscpp_jax import initiation as I
+
+    cfg = CFG.replace(variant="single")
+    icfg = O.initiation_config(cfg)
+    assert icfg.variant == "single" and icfg.gamma == cfg.svm_gamma
+    ch = O.chain_init(cfg, GOAL_XY)
+    ch = _events(ch, 1, (0.0, 7.0), cfg.gestation, seed=11)
+    ch = jax.jit(O.grow_chain)(jax.jit(O.refit)(ch), START_XY)
+    assert int(ch.num_options) == 3
+    row = _row(ch, 1)
+    grid = np.stack(np.meshgrid(np.linspace(-4, 4, 9), np.linspace(3, 11, 9)), -1).reshape(-1, 2)
+    grid = grid.astype(np.float32)
+    pes = np.asarray(I.pessimistic_contains(row, grid))
+    assert pes.any() and not pes.all()
+    np.testing.assert_array_equal(np.asarray(I.initiation_contains(row, grid)), pes)
+    for xy in grid[::7]:
+        assert bool(O.can_initiate(ch, xy)[1]) == bool(I.pessimistic_contains(row, xy))
+        assert bool(O.option_terminates(ch, 2, xy)) == bool(I.pessimistic_contains(row, xy))
