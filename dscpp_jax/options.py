@@ -16,19 +16,26 @@ success / execution counters, a ring of positive trajectories (start state + the
 ``buffer_len`` visited xy positions of a successful execution, with a validity mask), a ring of
 negative start states (failed executions), its fitted initiation classifiers (from
 :mod:`dscpp_jax.initiation`, stacked over rows), and a cache used by robust subgoal sampling (which
-stored positive states lie, with their +-0.6 neighbourhood, inside the row's own pessimistic
-region; refreshed by :func:`refit`).
+stored positive states lie, with their +-subgoal_tolerance neighbourhood, inside the row's own
+pessimistic region; refreshed by :func:`refit`).
 
-Per environment step (inside ``lax.scan``, vmapped over envs where noted)::
+Per environment step (inside ``lax.scan``; single-env functions are vmapped over the B envs)::
 
-    o     = select_option(chain, xy)                      # vmap over envs; int32
-    g     = subgoals.robust_subgoal(key, chain, o)        # or subgoals.pick_subgoal(...)
-    done  = option_terminates(chain, o, xy, goal)         # vmap over envs
-    ok    = local_success(chain, o, xy, g)                # vmap over envs
-    chain = record_outcomes(chain, o_ids, ok, start_xy, traj_xy, traj_mask, ended)  # batched
+    o     = select_option(chain, xy)                          # () int32 per env
+    g     = subgoals.robust_subgoal(key, chain, o)            # (2,) per env; or, with a DP table,
+          # subgoals.pick_subgoal(table, chain, o, obs, value_fn)
+    ... act towards g, step the env, append xy to the env's last-buffer_len ring ...
+    ok    = local_success(chain, o, next_xy, g)               # () bool per env
+    ended = ok | timeout (option_timeout) | episode end
+    chain = record_outcomes(chain, o_ids, ok, start_xy, traj_xy, traj_mask, ended,
+                            start_obs)                        # batched (B,), training only
 
-Per learning iteration: ``chain = refit(chain)``, then ``chain = grow_chain(chain, env.start)``,
-then (DP subgoals only) ``table = subgoals.dp_value_table(chain, value_fn)``.
+Per learning iteration (after the scan)::
+
+    chain = refit(chain)                      # rows that got examples (vmapped SMO over rows)
+    chain = grow_chain(chain, env.start)      # maturity, then at most one new option
+    table = subgoals.dp_value_table(chain, value_fn)   # DP subgoals only
+    metrics = chain_metrics(chain, env.start)
 
 All functions are pure, jit-able and shape-stable; the config is a static field of :class:`Chain`.
 """
