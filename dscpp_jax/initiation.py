@@ -148,9 +148,9 @@ def _check_inputs(pos_xy, pos_mask, neg_xy, neg_mask):
 @functools.partial(jax.jit, static_argnames=("cfg", "inner"))
 def _fit(pos_xy, pos_mask, neg_xy, neg_mask, prev: InitiationClassifiers, cfg: InitiationConfig,
          inner) -> InitiationClassifiers:
-    X = jnp.concatenate([pos_xy, neg_xy], axis=0).astype(jnp.float32)
     pos_mask = pos_mask.astype(bool)
     neg_mask = neg_mask.astype(bool)
+    X = svm._clean(jnp.concatenate([pos_xy, neg_xy], axis=0), jnp.concatenate([pos_mask, neg_mask]))
     labels = jnp.concatenate([jnp.ones_like(pos_mask, jnp.int32), jnp.zeros_like(neg_mask, jnp.int32)])
     pos_slots = jnp.concatenate([pos_mask, jnp.zeros_like(neg_mask)])
     all_slots = jnp.concatenate([pos_mask, neg_mask])

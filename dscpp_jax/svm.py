@@ -381,16 +381,21 @@ def _fit_problem(X, mask, problem, one_class, gamma, tol, max_iter, inner):
     return model, y * (G - p) - rho
 
 
+def _clean(X, mask):
+    """float32 points with padded slots zeroed (whatever they held, NaN included)."""
+    return jnp.where(mask.astype(bool)[:, None], X.astype(jnp.float32), 0.0)
+
+
 @functools.partial(jax.jit, static_argnames=("max_iter", "inner"))
 def _fit_svc_jit(X, labels, mask, gamma, C, balanced, tol, max_iter, inner):
-    X = X.astype(jnp.float32)
+    X = _clean(X, mask)
     problem = _svc_problem(labels, mask, jnp.asarray(C, jnp.float32), balanced)
     return _fit_problem(X, mask, problem, False, gamma, tol, max_iter, inner)[0]
 
 
 @functools.partial(jax.jit, static_argnames=("max_iter", "inner", "start_bound"))
 def _fit_one_class_jit(X, mask, nu, gamma, tol, max_iter, inner, start_bound):
-    X = X.astype(jnp.float32)
+    X = _clean(X, mask)
     problem = _one_class_problem(X, mask, jnp.asarray(nu, jnp.float32), gamma, start_bound)
     return _fit_problem(X, mask, problem, True, gamma, tol, max_iter, inner)[0]
 
