@@ -284,12 +284,22 @@ def select_option(chain: Chain, xy, at_subgoal=None) -> jax.Array:
 # Recording outcomes (batched over envs)
 # ------------------------------------------------------------------------------------------------
 
-def _ranks(onehot):
-    """Per event: rank among earlier events of the same option (exclusive cumsum), and the total
-    number of events per option. onehot: (B, K) bool."""
-    c = jnp.cumsum(onehot.astype(jnp.int32), axis=0)
-    rank = jnp.sum((c - 1) * onehot, axis=1)
-    return rank, c[-1]
+def _ring_slots(oid, is_event, count, capacity):
+    """Ring write positions for a batch of events, equal to writing them one by one in env order.
+
+    oid: (B,) row per event, is_event: (B,) bool, count: (K,) entries written so far per row.
+    Returns (row (B,), slot (B,), n_new (K,)): row = K (out of bounds: drop) for non-events and for
+    events that a later event of the same burst overwrites, so no two kept writes share a slot
+    (scatter order with duplicate indices is unspecified on accelerators).
+    """
+    K = count.shape[0]
+    onehot = jax.nn.one_hot(oid, K, dtype=jnp.int32) * is_event[:, None]
+    c = jnp.cumsum(onehot, axis=0)
+    rank = jnp.sum((c - 1) * onehot, axis=1)           # earlier events of the same row
+    n_new = c[-1]
+    keep = is_event & (rank >= n_new[oid] - capacity)  # only the last `capacity` of a burst
+    slot = (count[oid] + rank) % capacity
+    return jnp.where(keep, oid, K), slot, n_new
 
 
 def record_outcomes(chain: Chain, option_ids, success, start_xy, traj_xy, traj_mask, event_mask,
@@ -349,12 +359,7 @@ def record_outcomes(chain: Chain, option_ids, success, start_xy, traj_xy, traj_m
     successes = chain.successes + jnp.sum(onehot_k * (ev & success)[:, None], axis=0)
 
     # positives: start + last buffer_len positions
-    is_pos = learns & success
-    oh = (onehot_k > 0) & is_pos[:, None]
-    rank, n_new = _ranks(oh)
-    keep = is_pos & (rank >= n_new[oid] - P)            # only the last P of a burst survive
-    slot = (chain.pos_count[oid] + rank) % P
-    row = jnp.where(keep, oid, K)                       # K = out of bounds -> dropped
+    row, slot, n_new = _ring_slots(oid, learns & success, chain.pos_count, P)
     traj = jnp.concatenate([start_xy[:, None, :], traj_xy], axis=1)          # (B, L, 2)
     tmask = jnp.concatenate([jnp.ones((B, 1), bool), traj_mask], axis=1)     # (B, L)
     pos_xy = chain.pos_xy.at[row, slot].set(traj, mode="drop")
@@ -365,12 +370,7 @@ def record_outcomes(chain: Chain, option_ids, success, start_xy, traj_xy, traj_m
     pos_count = chain.pos_count + n_new
 
     # negatives: the start state of a failed execution
-    is_neg = learns & ~success
-    ohn = (onehot_k > 0) & is_neg[:, None]
-    rank_n, n_neg = _ranks(ohn)
-    keep_n = is_neg & (rank_n >= n_neg[oid] - N)
-    slot_n = (chain.neg_count[oid] + rank_n) % N
-    row_n = jnp.where(keep_n, oid, K)
+    row_n, slot_n, n_neg = _ring_slots(oid, learns & ~success, chain.neg_count, N)
     neg_xy = chain.neg_xy.at[row_n, slot_n].set(start_xy, mode="drop")
     neg_mask = chain.neg_mask.at[row_n, slot_n].set(True, mode="drop")
     neg_count = chain.neg_count + n_neg

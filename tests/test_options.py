@@ -124,6 +124,30 @@ def test_record_outcomes_batched_equals_sequential():
     assert ref["pos_count"][2] > cfg.max_pos_traj  # the rings did wrap
 
 
+def test_ring_slots_never_collide():
+    """Kept writes of one batch hit distinct (row, slot) pairs, the last `capacity` events of each
+    row survive, and slots continue the ring: sequential semantics without relying on the order
+    in which a scatter applies duplicate indices."""
+    rng = np.random.default_rng(3)
+    K, cap = 5, 3
+    for _ in range(20):
+        B = 12
+        oid = rng.integers(0, K, B)
+        ev = rng.random(B) < 0.7
+        count = rng.integers(0, 10, K)
+        row, slot, n_new = O._ring_slots(jnp.asarray(oid), jnp.asarray(ev), jnp.asarray(count), cap)
+        row, slot = np.asarray(row), np.asarray(slot)
+        kept = row < K
+        pairs = list(zip(row[kept], slot[kept]))
+        assert len(pairs) == len(set(pairs))
+        for k in range(K):
+            idx = np.flatnonzero(ev & (oid == k))
+            assert int(n_new[k]) == len(idx)
+            np.testing.assert_array_equal(np.flatnonzero(kept & (row == k)), idx[-cap:])
+            np.testing.assert_array_equal(slot[idx[-cap:]],
+                                          (count[k] + np.arange(len(idx))[-cap:]) % cap)
+
+
 def test_record_outcomes_checks_shapes():
     ch = O.chain_init(CFG, GOAL_XY)
     B, T = 2, CFG.buffer_len
