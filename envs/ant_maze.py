@@ -1,0 +1,245 @@
+"""The MJX ant maze: D4RL/OGBench ant physics on `mujoco.mjx` directly, walls generated from the map.
+
+Physics (D4RL/OGBench ant, the DSC++ setting): timestep 0.02 s, RK4, 5 frames per env step
+(0.1 s of simulated time), 8 motors with gear 30 and ctrlrange [-1, 1] (so actions in [-1, 1] are
+torques of +-30), observation qpos[:15] + qvel[:14] (29 numbers, x, y first), reset
+qpos0 + U(-0.1, 0.1) and qvel 0.1 N(0, 1), 1000-step episodes, sparse goal reward.
+
+Contacts are pruned for speed (see `ant_mjcf`): no self-collision; the floor touches only the four
+foot spheres and the torso; the wall boxes (one per merged rectangle of wall cells) sit on their
+own collision bit and touch the torso, the four knee spheres and the four foot spheres, with
+frictionless single-row (condim 1) contacts. As a backstop, a torso that still ends an env step
+inside a wall cell is moved back to its previous x, y with zero x, y velocity.
+
+The interface follows Brax (`reset`, `step`, `observation_size`, `action_size`, `State`), but
+physics is stepped with `mujoco.mjx.step`, not through Brax's pipeline (much faster).
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Optional
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from brax.envs.base import State
+from mujoco import mjx
+
+from envs import goals
+from envs.maze_layout import MazeLayout
+
+# Actuator order of the D4RL ant.
+ACTUATED_JOINTS = ("hip_4", "ankle_4", "hip_1", "ankle_1", "hip_2", "ankle_2", "hip_3", "ankle_3")
+TORSO_RADIUS = 0.25
+LIMB_RADIUS = 0.08
+TORSO_HEIGHT = 0.75
+
+
+@dataclasses.dataclass(frozen=True)
+class AntConfig:
+    timestep: float = 0.02
+    frame_skip: int = 5
+    integrator: str = "Euler"  # "Euler" (semi-implicit, default, fast) or "RK4" (D4RL)
+    gear: float = 30.0
+    solver: str = "Newton"
+    solver_iterations: int = 1
+    ls_iterations: int = 4
+    jacobian: str = "dense"
+    wall_height: float = 2.0
+    wall_contacts: str = "torso_knees_feet"  # or "torso_feet", "torso"
+    max_contact_points: int = -1  # MJX broad-phase numerics (-1 = off)
+    max_geom_pairs: int = -1
+    torso_wall_backstop: bool = True
+    reset_noise_scale: float = 0.1
+    episode_length: int = goals.EPISODE_LENGTH
+    goal_tolerance: float = goals.GOAL_TOLERANCE
+    start_margin: float = 0.5  # wall margin of the diverse-start sampler
+
+    def __post_init__(self):
+        if self.integrator not in ("RK4", "Euler", "implicitfast"):
+            raise ValueError(f"integrator must be 'RK4', 'Euler' or 'implicitfast', got {self.integrator!r}")
+        if self.wall_contacts not in ("torso_knees_feet", "torso_feet", "torso"):
+            raise ValueError("wall_contacts must be 'torso_knees_feet', 'torso_feet' or 'torso', "
+                             f"got {self.wall_contacts!r}")
+        if self.frame_skip < 1 or self.episode_length < 1:
+            raise ValueError("frame_skip and episode_length must be >= 1")
+
+
+_LEGS = (  # (name, hip offset direction, ankle axis, ankle range)
+    ("1", (1, 1), "-1 1 0", "30 70"),
+    ("2", (-1, 1), "1 1 0", "-70 -30"),
+    ("3", (-1, -1), "-1 1 0", "-70 -30"),
+    ("4", (1, -1), "1 1 0", "30 70"),
+)
+
+
+def ant_mjcf(layout: MazeLayout, cfg: AntConfig = AntConfig()) -> str:
+    """MJCF text of the ant in the maze. Collision bits: 1 = floor, 2 = walls."""
+    numerics = []
+    # MJX reads these by numeric id: they must come FIRST in <custom>.
+    if cfg.max_contact_points >= 0:
+        numerics.append(f'<numeric data="{cfg.max_contact_points}" name="max_contact_points"/>')
+    if cfg.max_geom_pairs >= 0:
+        numerics.append(f'<numeric data="{cfg.max_geom_pairs}" name="max_geom_pairs"/>')
+    custom = f"<custom>{''.join(numerics)}</custom>" if numerics else ""
+    hz = cfg.wall_height / 2.0
+    walls = "\n".join(
+        f'    <geom name="wall_{k}" type="box" pos="{cx:g} {cy:g} {hz:g}" size="{hx:g} {hy:g} {hz:g}" '
+        f'contype="0" conaffinity="2" condim="1" priority="1" rgba="0.7 0.5 0.3 1"/>'
+        for k, (cx, cy, hx, hy) in enumerate(layout.wall_boxes))
+    knee_type = 2 if cfg.wall_contacts == "torso_knees_feet" else 0
+    foot_type = 3 if cfg.wall_contacts != "torso" else 1
+    legs = []
+    for name, (sx, sy), axis, rng in _LEGS:
+        a = f"{0.2 * sx:g} {0.2 * sy:g} 0.0"
+        f = f"{0.4 * sx:g} {0.4 * sy:g} 0.0"
+        legs.append(f"""
+      <body name="leg_{name}" pos="0 0 0">
+        <geom name="aux_{name}_geom" type="capsule" fromto="0 0 0 {a}" size="{LIMB_RADIUS}"/>
+        <body name="aux_{name}" pos="{a}">
+          <joint name="hip_{name}" type="hinge" axis="0 0 1" range="-30 30"/>
+          <geom name="leg_{name}_geom" type="capsule" fromto="0 0 0 {a}" size="{LIMB_RADIUS}"/>
+          <body name="shin_{name}" pos="{a}">
+            <joint name="ankle_{name}" type="hinge" axis="{axis}" range="{rng}"/>
+            <geom name="ankle_{name}_geom" type="capsule" fromto="0 0 0 {f}" size="{LIMB_RADIUS}"/>
+            <geom name="knee_{name}" type="sphere" size="{LIMB_RADIUS}" mass="0" contype="{knee_type}"/>
+            <geom name="foot_{name}" type="sphere" pos="{f}" size="{LIMB_RADIUS}" mass="0" contype="{foot_type}"/>
+          </body>
+        </body>
+      </body>""")
+    motors = "\n".join(
+        f'    <motor joint="{j}" gear="{cfg.gear:g}" ctrlrange="-1 1" ctrllimited="true"/>'
+        for j in ACTUATED_JOINTS)
+    size = max(abs(v) for v in layout.bounds) + 10.0
+    return f"""<mujoco model="ant_{layout.name}">
+  <compiler angle="degree" coordinate="local" inertiafromgeom="true"/>
+  <option timestep="{cfg.timestep:g}" integrator="{cfg.integrator}" solver="{cfg.solver}"
+          iterations="{cfg.solver_iterations}" ls_iterations="{cfg.ls_iterations}" jacobian="{cfg.jacobian}">
+    <flag eulerdamp="disable"/>
+  </option>
+  {custom}
+  <default>
+    <joint armature="1" damping="1" limited="true"/>
+    <geom contype="0" conaffinity="0" condim="3" density="5.0" friction="1 0.5 0.5" rgba="0.8 0.6 0.4 1"/>
+  </default>
+  <worldbody>
+    <light directional="true" diffuse="1 1 1" pos="0 0 10" dir="0 0 -1"/>
+    <geom name="floor" type="plane" pos="0 0 0" size="{size:g} {size:g} 1" contype="0" conaffinity="1" condim="3" rgba="0.8 0.9 0.8 1"/>
+{walls}
+    <body name="torso" pos="{layout.start_xy[0]:g} {layout.start_xy[1]:g} {TORSO_HEIGHT}">
+      <joint name="root" type="free" armature="0" damping="0" limited="false"/>
+      <geom name="torso_geom" type="sphere" size="{TORSO_RADIUS}" contype="3"/>{''.join(legs)}
+    </body>
+  </worldbody>
+  <actuator>
+{motors}
+  </actuator>
+</mujoco>
+"""
+
+
+def body_points(m: mujoco.MjModel, geom_xpos, geom_xmat, n: int = 5):
+    """Points along every ant capsule centre line and every sphere centre (for wall tests).
+
+    geom_xpos (..., ngeom, 3), geom_xmat (..., ngeom, 3, 3) -> (..., P, 3). NumPy.
+    """
+    pts = []
+    for g in range(m.ngeom):
+        if m.geom_bodyid[g] == 0:
+            continue
+        pos = geom_xpos[..., g, :]
+        if m.geom_type[g] == mujoco.mjtGeom.mjGEOM_CAPSULE:
+            half = m.geom_size[g, 1]
+            axis = geom_xmat[..., g, :, 2]
+            for t in np.linspace(-1.0, 1.0, n):
+                pts.append(pos + t * half * axis)
+        else:
+            pts.append(pos)
+    return np.stack(pts, axis=-2)
+
+
+class AntMazeEnv:
+    """Goal-conditioned MJX ant maze with a Brax-compatible interface."""
+
+    observation_size = 29
+    action_size = 8
+    goal_size = 2
+    backend = "mjx"
+
+    def __init__(self, layout: MazeLayout, config: AntConfig = AntConfig()):
+        self.layout = layout
+        self.config = config
+        self.name = layout.name
+        self.episode_length = config.episode_length
+        self.goal_tolerance = config.goal_tolerance
+        self.start = jnp.asarray(layout.start_xy, jnp.float32)
+        self.goal = jnp.asarray(layout.goal_xy, jnp.float32)
+        self.xml = ant_mjcf(layout, config)
+        self.mj_model = mujoco.MjModel.from_xml_string(self.xml)
+        self.mjx_model = mjx.put_model(self.mj_model)
+        self._init_qpos = jnp.asarray(self.mj_model.qpos0, jnp.float32)
+        d0 = mujoco.MjData(self.mj_model)
+        mujoco.mj_forward(self.mj_model, d0)
+        self._data0 = mjx.put_data(self.mj_model, d0)
+
+    @property
+    def unwrapped(self):
+        return self
+
+    @property
+    def dt(self) -> float:
+        return self.config.timestep * self.config.frame_skip
+
+    def __repr__(self):
+        return f"AntMazeEnv({self.layout.name!r})"
+
+    # ---- API ---------------------------------------------------------------------------------
+    def reset(self, key) -> State:
+        """Episode at the task start with D4RL reset noise."""
+        return self.reset_at(key, self.start)
+
+    def reset_at(self, key, xy) -> State:
+        """Episode with the torso at xy (+ reset noise: qpos U(-0.1, 0.1), qvel 0.1 N(0, 1))."""
+        k1, k2 = jax.random.split(key)
+        c = self.config.reset_noise_scale
+        qpos = self._init_qpos.at[:2].set(jnp.asarray(xy, jnp.float32))
+        qpos = qpos + jax.random.uniform(k1, qpos.shape, minval=-c, maxval=c)
+        qpos = qpos.at[3:7].set(qpos[3:7] / jnp.linalg.norm(qpos[3:7]))
+        qvel = c * jax.random.normal(k2, (self.mj_model.nv,))
+        # The template holds the kinematics of the nominal pose; mjx.step recomputes everything
+        # from qpos/qvel, and skipping mjx.forward here keeps reset cheap to compile.
+        data = self._data0.replace(qpos=qpos, qvel=qvel)
+        zero = jnp.zeros((), jnp.float32)
+        return State(pipeline_state=data, obs=self._obs(data), reward=zero, done=zero, metrics={},
+                     info=goals.initial_info(self.goal))
+
+    def sample_start(self, key):
+        """Diverse start: uniform over free space, `start_margin` from walls, outside the goal region."""
+        return self.layout.sample_free(key, self.goal, margin=self.config.start_margin,
+                                       goal_tolerance=self.goal_tolerance)
+
+    def step(self, state: State, action) -> State:
+        prev = state.pipeline_state
+        a = jnp.clip(jnp.nan_to_num(jnp.asarray(action, jnp.float32)), -1.0, 1.0)
+        data = prev.replace(ctrl=a)
+        data = jax.lax.fori_loop(0, self.config.frame_skip,
+                                 lambda _, d: mjx.step(self.mjx_model, d), data)
+        if self.config.torso_wall_backstop:
+            inside = self.layout.in_wall(data.qpos[:2])
+            qpos = data.qpos.at[:2].set(jnp.where(inside, prev.qpos[:2], data.qpos[:2]))
+            qvel = data.qvel.at[:2].set(jnp.where(inside, 0.0, data.qvel[:2]))
+            data = data.replace(qpos=qpos, qvel=qvel)
+        obs = self._obs(data)
+        nan = ~jnp.all(jnp.isfinite(obs))
+        # Physics blew up: keep the last finite state (the episode ends; the caller resets).
+        data = data.replace(
+            qpos=jnp.where(nan, prev.qpos, data.qpos), qvel=jnp.where(nan, prev.qvel, data.qvel),
+            qacc_warmstart=jnp.where(nan, 0.0, data.qacc_warmstart))
+        obs, reward, done, info = goals.finish_step(state.info, obs, state.obs, self.episode_length,
+                                                    self.goal_tolerance, nan=nan)
+        return state.replace(pipeline_state=data, obs=obs, reward=reward, done=done, info=info)
+
+    @staticmethod
+    def _obs(data):
+        return jnp.concatenate([data.qpos[:15], data.qvel[:14]]).astype(jnp.float32)
