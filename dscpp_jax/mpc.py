@@ -63,8 +63,9 @@ class MPCConfig:
     use_value: add the terminal value term (False = flat finite-horizon MPC).
     compute_dtype: "float32" or "bfloat16" matmul operands (accumulation and state stay float32).
     ensemble_mode: "member" (one member per sequence) or "mean" (mean of members at each step).
-    backend: "auto", "xla" or "pallas" (the fused GPU kernel; bfloat16 only, member mode only).
-    block_rows, num_warps, num_stages, hidden_chunk: tiling of the fused kernel.
+    backend: "auto", "xla" or "pallas" (the fused GPU kernel; bfloat16 only).
+    block_rows, num_warps, num_stages, hidden_chunk, out_chunk: tiling of the fused kernel (rows per
+        program, warps, pipelining stages, first-layer and second-layer hidden blocks).
     value_precision: matmul precision of the value_fn call (None = JAX default; "bfloat16" runs the
         critic's float32 matmuls as single bf16 passes).
     """
@@ -81,6 +82,7 @@ class MPCConfig:
     num_warps: int = 4
     num_stages: int = 1
     hidden_chunk: int = 128
+    out_chunk: int = 64
     value_precision: Optional[str] = None
 
     def __post_init__(self):
@@ -94,8 +96,12 @@ class MPCConfig:
             raise ValueError(f"ensemble_mode must be 'member' or 'mean', got {self.ensemble_mode!r}")
         if self.backend not in ("auto", "xla", "pallas"):
             raise ValueError(f"backend must be 'auto', 'xla' or 'pallas', got {self.backend!r}")
-        if self.block_rows < 16 or self.block_rows & (self.block_rows - 1):
-            raise ValueError(f"block_rows must be a power of 2 >= 16, got {self.block_rows}")
+        for name in ("block_rows", "hidden_chunk", "out_chunk"):
+            v = getattr(self, name)
+            if v < 16 or v & (v - 1):
+                raise ValueError(f"{name} must be a power of 2 >= 16, got {v}")
+        if self.out_chunk > self.hidden_chunk or self.hidden_chunk % self.out_chunk:
+            raise ValueError(f"out_chunk ({self.out_chunk}) must divide hidden_chunk ({self.hidden_chunk})")
 
 
 def mpc_flops_per_decision(mpc_cfg: MPCConfig, obs_dim: int, action_dim: int,
@@ -259,6 +265,7 @@ def _rollout_pallas(mpc_cfg: MPCConfig, dyn_cfg: DynamicsConfig, fd: FoldedDynam
     SP, AP, HP, BM, Mp = _kernel_dims(mpc_cfg, obs_dim, act_dim, hidden)
     K = mpc_cfg.horizon
     CH = mpc_cfg.hidden_chunk
+    NC = mpc_cfg.out_chunk
     nH = HP // CH
     slope = float(dyn_cfg.negative_slope)
     gamma = float(mpc_cfg.discount)
@@ -274,6 +281,10 @@ def _rollout_pallas(mpc_cfg: MPCConfig, dyn_cfg: DynamicsConfig, fd: FoldedDynam
     def leaky(x):
         return jnp.maximum(x, slope * x)
 
+    mean_mode = mpc_cfg.ensemble_mode == "mean" and E > 1
+    if mean_mode:  # every program loops over all members: the output layer's bias is averaged once
+        b3 = jnp.broadcast_to(b3.mean(0, keepdims=True), b3.shape)
+
     def kernel(s0_ref, g_ref, a_ref, ws_ref, wa_ref, b1_ref, w2_ref, b2_ref, w3_ref, b3_ref,
                cost_ref, sk_ref):
         s = jnp.broadcast_to(s0_ref[...], (BM, SP))
@@ -281,26 +292,42 @@ def _rollout_pallas(mpc_cfg: MPCConfig, dyn_cfg: DynamicsConfig, fd: FoldedDynam
         lane = jax.lax.broadcasted_iota(jnp.int32, (1, SP), 1)
         xy_lane = lane < 2
 
+        def W(ref, e, *idx):  # a weight tile of member e (member mode: the block is one member)
+            return ref[(e,) + idx] if mean_mode else ref[idx]
+
+        def member_delta(e, sb, a):
+            h1 = []
+            for k in range(nH):
+                acc = jnp.dot(sb, W(ws_ref, e, slice(None), pl.ds(k * CH, CH)), preferred_element_type=f32)
+                acc = acc + jnp.dot(a, W(wa_ref, e, slice(None), pl.ds(k * CH, CH)), preferred_element_type=f32)
+                acc = acc + W(b1_ref, e, slice(None), pl.ds(k * CH, CH))
+                h1.append(leaky(acc).astype(bf))
+
+            # Layer 2 and the output layer, one block of NC hidden units at a time. The loop is a
+            # real loop whose weight loads depend on its index, so the compiler cannot hoist all
+            # weight tiles out of the K-step loop (they would not fit in shared memory).
+            def out_chunk(c, ds):
+                c0 = pl.multiple_of(c * NC, NC)
+                acc = jnp.dot(h1[0], W(w2_ref, e, pl.ds(0, CH), pl.ds(c0, NC)), preferred_element_type=f32)
+                for k in range(1, nH):
+                    acc = acc + jnp.dot(h1[k], W(w2_ref, e, pl.ds(k * CH, CH), pl.ds(c0, NC)),
+                                        preferred_element_type=f32)
+                acc = acc + W(b2_ref, e, slice(None), pl.ds(c0, NC))
+                h2 = leaky(acc).astype(bf)
+                return ds + jnp.dot(h2, W(w3_ref, e, pl.ds(c0, NC), slice(None)), preferred_element_type=f32)
+
+            return jax.lax.fori_loop(0, HP // NC, out_chunk, jnp.zeros((BM, SP), f32))
+
         def step(t, carry):
             s, cost, disc = carry
             a = a_ref[t]  # (BM, AP) bf16
             sb = s.astype(bf)
-            h1 = []
-            for k in range(nH):
-                acc = jnp.dot(sb, ws_ref[:, pl.ds(k * CH, CH)], preferred_element_type=f32)
-                acc = acc + jnp.dot(a, wa_ref[:, pl.ds(k * CH, CH)], preferred_element_type=f32)
-                acc = acc + b1_ref[:, pl.ds(k * CH, CH)]
-                h1.append(leaky(acc).astype(bf))
-            ds = jnp.zeros((BM, SP), f32)
-            for c in range(nH):
-                acc = jnp.dot(h1[0], w2_ref[pl.ds(0, CH), pl.ds(c * CH, CH)], preferred_element_type=f32)
-                for k in range(1, nH):
-                    acc = acc + jnp.dot(h1[k], w2_ref[pl.ds(k * CH, CH), pl.ds(c * CH, CH)],
-                                        preferred_element_type=f32)
-                acc = acc + b2_ref[:, pl.ds(c * CH, CH)]
-                h2 = leaky(acc).astype(bf)
-                ds = ds + jnp.dot(h2, w3_ref[pl.ds(c * CH, CH), :], preferred_element_type=f32)
-            s = s + ds + b3_ref[...]
+            if mean_mode:
+                ds = jax.lax.fori_loop(0, E, lambda e, acc: acc + member_delta(e, sb, a),
+                                       jnp.zeros((BM, SP), f32)) * (1.0 / E)
+                s = s + ds + W(b3_ref, 0, slice(None), slice(None))
+            else:
+                s = s + member_delta(0, sb, a) + b3_ref[...]
             d2 = jnp.sum(jnp.where(xy_lane, jnp.square(s - gg), 0.0), axis=1)
             cost = cost + disc * (d2 > tol2).astype(f32)
             return s, cost, disc * gamma
@@ -310,18 +337,17 @@ def _rollout_pallas(mpc_cfg: MPCConfig, dyn_cfg: DynamicsConfig, fd: FoldedDynam
         sk_ref[...] = s
 
     nb = Mp // BM
-    wmap3 = lambda b, i: (i % E, 0, 0)
+    def wspec(shape):
+        if mean_mode:  # all members in every program
+            return pl.BlockSpec((E,) + shape, lambda b, i: (0, 0, 0))
+        return pl.BlockSpec((None,) + shape, lambda b, i: (i % E, 0, 0))
+
     in_specs = [
         pl.BlockSpec((1, SP), lambda b, i: (b, 0)),
         pl.BlockSpec((1, SP), lambda b, i: (b, 0)),
         pl.BlockSpec((None, K, BM, AP), lambda b, i: (b, 0, i, 0)),
-        pl.BlockSpec((None, SP, HP), wmap3),
-        pl.BlockSpec((None, AP, HP), wmap3),
-        pl.BlockSpec((None, 1, HP), wmap3),
-        pl.BlockSpec((None, HP, HP), wmap3),
-        pl.BlockSpec((None, 1, HP), wmap3),
-        pl.BlockSpec((None, HP, SP), wmap3),
-        pl.BlockSpec((None, 1, SP), wmap3),
+        wspec((SP, HP)), wspec((AP, HP)), wspec((1, HP)), wspec((HP, HP)), wspec((1, HP)),
+        wspec((HP, SP)), wspec((1, SP)),
     ]
     out_specs = [
         pl.BlockSpec((1, BM), lambda b, i: (b, i)),
@@ -332,7 +358,7 @@ def _rollout_pallas(mpc_cfg: MPCConfig, dyn_cfg: DynamicsConfig, fd: FoldedDynam
         from jax.experimental.pallas import triton as plgpu
         kwargs["compiler_params"] = plgpu.CompilerParams(num_warps=mpc_cfg.num_warps,
                                                          num_stages=mpc_cfg.num_stages)
-    flops = int(2 * B * Mp * K * (SP * HP + AP * HP + HP * HP + HP * SP))
+    flops = int(2 * B * Mp * K * (SP * HP + AP * HP + HP * HP + HP * SP) * (E if mean_mode else 1))
     cost, sk = pl.pallas_call(
         kernel,
         grid=(B, nb),
@@ -366,8 +392,7 @@ def _resolve_backend(mpc_cfg: MPCConfig, dyn_cfg: DynamicsConfig) -> str:
     if mpc_cfg.backend != "auto":
         return mpc_cfg.backend
     ok = (jax.default_backend() == "gpu" and len(dyn_cfg.hidden) == 2
-          and mpc_cfg.compute_dtype == "bfloat16"
-          and (mpc_cfg.ensemble_mode == "member" or dyn_cfg.ensemble_size == 1))
+          and mpc_cfg.compute_dtype == "bfloat16")
     return "pallas" if ok else "xla"
 
 
@@ -376,8 +401,6 @@ def _check_pallas(mpc_cfg, dyn_cfg):
         raise ValueError(f"backend='pallas' supports 2 hidden layers, got hidden={dyn_cfg.hidden}")
     if mpc_cfg.compute_dtype != "bfloat16":
         raise ValueError("backend='pallas' computes in bfloat16: set compute_dtype='bfloat16' or backend='xla'")
-    if mpc_cfg.ensemble_mode != "member" and dyn_cfg.ensemble_size > 1:
-        raise ValueError("backend='pallas' supports ensemble_mode='member' only: use backend='xla' for 'mean'")
 
 
 def _values(value_fn, final_states, goal, precision=None):

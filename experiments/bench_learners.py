@@ -83,6 +83,9 @@ def _mpc_variant(name):
     if name.endswith("_vbf16"):
         cfg, prec = _mpc_variant(name[:-len("_vbf16")])
         return dataclasses.replace(cfg, value_precision="bfloat16"), prec
+    if name.endswith("_mean"):
+        cfg, prec = _mpc_variant(name[:-len("_mean")])
+        return dataclasses.replace(cfg, ensemble_mode="mean"), prec
     base = dict(backend="xla", compute_dtype="float32")
     if name == "xla_f32":
         return MPCConfig(**base), None
@@ -91,7 +94,6 @@ def _mpc_variant(name):
     if name == "xla_bf16":
         return MPCConfig(backend="xla", compute_dtype="bfloat16"), None
     if name.startswith("pallas"):  # pallas_BM<rows>_W<warps>_S<stages>_C<chunk>
-        parts = dict(p[0] + "=" + p[1:] for p in name.split("_")[1:]) if "_" in name else {}
         kw = {}
         for p in name.split("_")[1:]:
             if p.startswith("BM"):
@@ -102,13 +104,14 @@ def _mpc_variant(name):
                 kw["num_stages"] = int(p[1:])
             elif p.startswith("C"):
                 kw["hidden_chunk"] = int(p[1:])
-        del parts
+            elif p.startswith("N"):
+                kw["out_chunk"] = int(p[1:])
         return MPCConfig(backend="pallas", compute_dtype="bfloat16", **kw), None
     raise ValueError(f"unknown MPC variant {name!r}")
 
 
 def bench_mpc(variants, env_sizes, num_samples, horizon, use_values=(True,), obs_dim=29, act_dim=8,
-              ensemble_size=1, reps=5, log=print):
+              ensemble_size=1, reps=5, log=print, on_row=None):
     import jax
     import jax.numpy as jnp
     from dscpp_jax.dynamics import DynamicsConfig, dynamics_fit_normaliser, dynamics_init
@@ -157,6 +160,8 @@ def bench_mpc(variants, env_sizes, num_samples, horizon, use_values=(True,), obs
                     row["error"] = f"{type(e).__name__}: {str(e)[:400]}"
                 rows.append(row)
                 log(_fmt_mpc(row))
+                if on_row is not None:
+                    on_row(row)
     return rows
 
 
@@ -281,7 +286,8 @@ def _synthetic_value(s, g):
     return -jnp.maximum(jnp.linalg.norm(s[:, :2] - g, axis=-1) - 0.6, 0.0) / QUALITY_V_SCALE
 
 
-def quality(data_path, out_npz, num_samples, horizon, n_starts, train_steps, ensemble=5, log=print):
+def quality(data_path, out_npz, num_samples, horizon, n_starts, train_steps, ensemble=5, log=print,
+            pallas_variant="pallas"):
     """Same candidate sequences scored by every variant; chosen sequences saved for a true replay."""
     import jax
     import jax.numpy as jnp
@@ -313,15 +319,20 @@ def quality(data_path, out_npz, num_samples, horizon, n_starts, train_steps, ens
     goal = s0[:, :2] + np.stack([np.cos(ang), np.sin(ang)], -1) * rng.uniform(0.8, 1.6, (n_starts, 1))
     goal = goal.astype(np.float32)
     base = MPCConfig(num_samples=num_samples, horizon=horizon, use_value=True)
+    pcfg, _ = _mpc_variant(pallas_variant)
+    pk = {f.name: getattr(pcfg, f.name) for f in dataclasses.fields(pcfg)
+          if f.name in ("backend", "compute_dtype", "block_rows", "num_warps", "num_stages", "hidden_chunk", "out_chunk")}
+    log(f"  fused-kernel settings in this study: {pk}")
     acts = sample_action_sequences(jax.random.key(123), base, n_starts, 8)
     variants = {
         "E1_f32_highest": (1, dict(backend="xla", compute_dtype="float32"), "highest"),
         "E1_f32_default": (1, dict(backend="xla", compute_dtype="float32"), None),
         "E1_xla_bf16": (1, dict(backend="xla", compute_dtype="bfloat16"), None),
-        "E1_pallas_bf16": (1, dict(backend="pallas", compute_dtype="bfloat16"), None),
+        "E1_pallas_bf16": (1, dict(pk), None),
         f"E{ensemble}_mean_f32": (ensemble, dict(backend="xla", compute_dtype="float32", ensemble_mode="mean"), "highest"),
         f"E{ensemble}_member_f32": (ensemble, dict(backend="xla", compute_dtype="float32", ensemble_mode="member"), "highest"),
-        f"E{ensemble}_member_pallas_bf16": (ensemble, dict(backend="pallas", compute_dtype="bfloat16", ensemble_mode="member"), None),
+        f"E{ensemble}_member_pallas_bf16": (ensemble, dict(pk, ensemble_mode="member"), None),
+        f"E{ensemble}_mean_pallas_bf16": (ensemble, dict(pk, ensemble_mode="mean"), None),
     }
     costs = {}
     for name, (E, kw, prec) in variants.items():
@@ -371,6 +382,7 @@ def replay_quality(npz_path, data_path, gamma=0.95, tol=0.6):
     fs = int(d["frame_skip"])
     s0, goal = q["s0"], q["goal"]
     res = {}
+    per_start = {}
     names = ["random_seq"] + [k for k in q.files if k.startswith("seq_")]
     for name in names:
         seqs = q[name]
@@ -390,11 +402,22 @@ def replay_quality(npz_path, data_path, gamma=0.95, tol=0.6):
             v = -max(dj - tol, 0.0) / QUALITY_V_SCALE
             c -= gamma ** seqs.shape[1] * v
             costs.append(c), dists.append(dj)
-        res[name.replace("seq_", "")] = {"true_cost_mean": float(np.mean(costs)),
-                                        "true_cost_sem": float(np.std(costs) / np.sqrt(len(costs))),
-                                        "true_final_dist_mean": float(np.mean(dists))}
-        print(f"  {name:<36} true cost {np.mean(costs):8.3f} ± {np.std(costs) / np.sqrt(len(costs)):.3f}   "
-              f"final distance {np.mean(dists):.3f}")
+        key = name.replace("seq_", "")
+        per_start[key] = (np.asarray(costs), np.asarray(dists))
+    ref = "E1_f32_highest" if "E1_f32_highest" in per_start else names[0]
+    rc, rd = per_start[ref]
+    n = len(rc)
+    for key, (costs, dists) in per_start.items():
+        dc, dd = costs - rc, dists - rd
+        res[key] = {"true_cost_mean": float(costs.mean()), "true_cost_sem": float(costs.std() / np.sqrt(n)),
+                    "true_final_dist_mean": float(dists.mean()),
+                    f"paired_cost_diff_vs_{ref}": float(dc.mean()),
+                    f"paired_cost_diff_sem": float(dc.std(ddof=1) / np.sqrt(n)) if n > 1 else 0.0,
+                    f"paired_dist_diff_vs_{ref}": float(dd.mean()),
+                    "paired_dist_diff_sem": float(dd.std(ddof=1) / np.sqrt(n)) if n > 1 else 0.0}
+        print(f"  {key:<30} true cost {costs.mean():8.3f}  paired diff vs {ref} {dc.mean():+.3f} ± "
+              f"{res[key]['paired_cost_diff_sem']:.3f}   final distance {dists.mean():.3f} "
+              f"(paired {dd.mean():+.4f} ± {res[key]['paired_dist_diff_sem']:.4f})")
     return res
 
 
@@ -412,10 +435,12 @@ def main(argv=None):
     p.add_argument("--tune-envs", type=int, default=128)
     p.add_argument("--no-value-envs", default=None, help="env counts also measured without the value term")
     p.add_argument("--ensemble", type=int, default=1)
+    p.add_argument("--ensemble-extra", default=None, metavar="E:ENVS",
+                   help="also time the best kernel with E members (member and mean modes) at ENVS envs")
     p.add_argument("--skip", default="", help="comma-separated sections to skip: mpc,td3,dynamics")
     p.add_argument("--quality", default=None, help="ant transitions .npz (--make-ant-data) for the quality study")
     p.add_argument("--quality-out", default=None, help="npz of chosen sequences (default next to --out)")
-    p.add_argument("--quality-starts", type=int, default=128)
+    p.add_argument("--quality-starts", type=int, default=512)
     p.add_argument("--quality-train-steps", type=int, default=3000)
     p.add_argument("--make-ant-data", default=None, metavar="PATH")
     p.add_argument("--replay-quality", default=None, metavar="NPZ", help="with --quality DATA: true replay")
@@ -458,35 +483,6 @@ def main(argv=None):
         with open(out, "w") as f:
             json.dump(res, f, indent=1)
 
-    if "mpc" not in skip:
-        if args.tune:
-            print(f"MPC kernel tuning at {args.tune_envs} envs (M={M}, K={K}, no value):")
-            tune_rows = bench_mpc(args.tune.split(","), [args.tune_envs], M, K, use_values=(False,),
-                                  ensemble_size=args.ensemble, reps=3)
-            res["mpc_tuning"] = tune_rows
-            ok = [r for r in tune_rows if "error" not in r]
-            if ok:
-                best = max(ok, key=lambda r: r["decisions_per_s"])["variant"]
-                res["mpc_best_kernel"] = best
-                for v in (best, best + "_vbf16"):
-                    if v not in variants:
-                        variants.append(v)
-            save()
-        print(f"MPC decisions/s (M={M}, K={K}, E={args.ensemble}):")
-        res["mpc"] = bench_mpc(variants, env_sizes, M, K, use_values=(True,), ensemble_size=args.ensemble)
-        save()
-        if args.no_value_envs:
-            nv = [int(x) for x in args.no_value_envs.split(",")]
-            print("MPC without the value term (flat finite horizon):")
-            res["mpc"] += bench_mpc(variants, nv, M, K, use_values=(False,), ensemble_size=args.ensemble)
-            save()
-    if args.quality:
-        print("MPC action quality (same candidate sequences, synthetic distance value):")
-        qout = args.quality_out or os.path.splitext(out)[0] + "_quality.npz"
-        res["quality"] = quality(args.quality, qout, M, K, args.quality_starts,
-                                 200 if small else args.quality_train_steps)
-        save()
-
     if "td3" not in skip:
         print("TD3 gradient steps/s:")
         res["td3"] = bench_td3([100, 256], 50 if small else 2000)
@@ -496,6 +492,45 @@ def main(argv=None):
         res["dynamics"] = bench_dynamics([1] if small else [1, 5], 256 if small else 1024, 10 if small else 500,
                                          5000 if small else 300_000)
         save()
+    res["mpc"] = []
+
+    def add_row(row, key="mpc"):
+        if row not in res.setdefault(key, []):
+            res[key].append(row)
+        save()
+
+    if "mpc" not in skip and args.tune:
+        print(f"MPC kernel tuning at {args.tune_envs} envs (M={M}, K={K}, no value):")
+        tune_rows = bench_mpc(args.tune.split(","), [args.tune_envs], M, K, use_values=(False,),
+                              ensemble_size=args.ensemble, reps=3, on_row=lambda r: add_row(r, "mpc_tuning"))
+        ok = [r for r in tune_rows if "error" not in r]
+        if ok:
+            best = max(ok, key=lambda r: r["decisions_per_s"])["variant"]
+            res["mpc_best_kernel"] = best
+            for v in (best, best + "_vbf16"):
+                if v not in variants:
+                    variants.append(v)
+        save()
+    if args.quality:
+        print("MPC action quality (same candidate sequences, synthetic distance value):")
+        qout = args.quality_out or os.path.splitext(out)[0] + "_quality.npz"
+        res["quality"] = quality(args.quality, qout, M, K, args.quality_starts,
+                                 200 if small else args.quality_train_steps,
+                                 pallas_variant=res.get("mpc_best_kernel", "pallas"))
+        save()
+    if "mpc" not in skip:
+        print(f"MPC decisions/s (M={M}, K={K}, E={args.ensemble}):")
+        bench_mpc(variants, env_sizes, M, K, use_values=(True,), ensemble_size=args.ensemble, on_row=add_row)
+        if args.no_value_envs:
+            nv = [int(x) for x in args.no_value_envs.split(",")]
+            print("MPC without the value term (flat finite horizon):")
+            bench_mpc(variants, nv, M, K, use_values=(False,), ensemble_size=args.ensemble, on_row=add_row)
+        if args.ensemble_extra and "mpc_best_kernel" in res:
+            E2, envs2 = (int(x) for x in args.ensemble_extra.split(":"))
+            best = res["mpc_best_kernel"]
+            print(f"MPC with an ensemble of {E2} (fused kernel, one member per sequence vs mean of members):")
+            bench_mpc([best, best + "_mean"], [envs2], M, K, use_values=(True,), ensemble_size=E2, on_row=add_row)
+
     print(f"\nwrote {out}")
     print("\n| section | variant | envs | value | rate | TFLOP/s |\n|---|---|---|---|---|---|")
     for r in res.get("mpc", []):
