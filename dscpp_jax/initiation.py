@@ -44,6 +44,10 @@ __all__ = [
 ]
 
 VARIANTS = ("dual", "single")
+# How fit_initiation_batch runs its options: "vmap" (one batched SMO loop that runs until the
+# slowest option is done; best on accelerators, where a step costs the same for 1 or 16 options)
+# or "map" (one option after another; on a CPU the work then scales with the options' own steps).
+BATCH_MODE = {"cpu": "map", "default": "vmap"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -208,7 +212,7 @@ def fit_initiation(pos_xy, pos_mask, neg_xy, neg_mask, cfg: InitiationConfig = I
 def fit_initiation_batch(pos_xy, pos_mask, neg_xy, neg_mask, cfg: InitiationConfig = InitiationConfig(),
                          prev: InitiationClassifiers | None = None, dirty=None, *,
                          _inner=None) -> InitiationClassifiers:
-    """Refit a batch of K options at once (vmapped SMO; each option stops on its own).
+    """Refit a batch of K options at once (vmapped SMO on accelerators, see ``BATCH_MODE``).
 
     pos_xy (K, P, d), pos_mask (K, P), neg_xy (K, M, d), neg_mask (K, M); prev: batched
     classifiers (leading K) or None; dirty: (K,) bool, options to refit (others keep ``prev``
@@ -235,16 +239,22 @@ def fit_initiation_batch(pos_xy, pos_mask, neg_xy, neg_mask, cfg: InitiationConf
         if dirty.shape != (K,):
             raise ValueError(f"dirty must have shape ({K},), got {dirty.shape}")
 
-    return _fit_batch(pos_xy, pos_mask, neg_xy, neg_mask, prev, dirty, cfg=cfg, inner=svm._resolve_inner(_inner))
+    mode = BATCH_MODE.get(jax.default_backend(), BATCH_MODE["default"])
+    return _fit_batch(pos_xy, pos_mask, neg_xy, neg_mask, prev, dirty, cfg=cfg,
+                      inner=svm._resolve_inner(_inner), mode=mode)
 
 
-@functools.partial(jax.jit, static_argnames=("cfg", "inner"))
-def _fit_batch(pos_xy, pos_mask, neg_xy, neg_mask, prev, dirty, cfg, inner):
-    def one(p, pm, n, nm, pr, d):
+@functools.partial(jax.jit, static_argnames=("cfg", "inner", "mode"))
+def _fit_batch(pos_xy, pos_mask, neg_xy, neg_mask, prev, dirty, cfg, inner, mode="vmap"):
+    def one(args):
+        p, pm, n, nm, pr, d = args
         new = _fit(p, pm & d, n, nm & d, pr, cfg=cfg, inner=inner)  # clean options: 0 SMO steps
         return _select(d, new, pr)
 
-    return jax.vmap(one)(pos_xy, pos_mask.astype(bool), neg_xy, neg_mask.astype(bool), prev, dirty)
+    args = (pos_xy, pos_mask.astype(bool), neg_xy, neg_mask.astype(bool), prev, dirty)
+    if mode == "map":
+        return jax.lax.map(one, args)
+    return jax.vmap(lambda *a: one(a))(*args)
 
 
 def optimistic_contains(clf: InitiationClassifiers, xy) -> jax.Array:

@@ -134,11 +134,14 @@ def test_unfitted_contains_nothing_and_previous_models_are_kept():
     assert not np.asarray(ini.initiation_contains(fresh, g)).any()
 
 
-def test_batch_refit_matches_single_fits_and_keeps_clean_rows():
+def test_batch_refit_matches_single_fits_and_keeps_clean_rows(monkeypatch):
     data = [dsc_like(10 + k, *c) for k, c in enumerate(CASES.values())]
     batch = [np.stack(a) for a in zip(*[padded(p, n) for p, n in data])]
     dirty = np.array([True, False, True])
+    # the accelerator path (one vmapped SMO loop) here, the CPU path (lax.map) below
+    monkeypatch.setitem(ini.BATCH_MODE, jax.default_backend(), "vmap")
     out = ini.fit_initiation_batch(*batch, CFG, dirty=dirty)
+    monkeypatch.setitem(ini.BATCH_MODE, jax.default_backend(), "map")
     assert np.asarray(out.optimistic_fitted).tolist() == [True, False, True]
     for k in (0, 2):
         one = ini.fit_initiation(*[a[k] for a in batch], CFG)
