@@ -212,6 +212,6 @@ def test_her_sample_draws_valid_entries_and_consistent_rewards():
     assert np.asarray(buf.valid)[np.asarray(rows), np.asarray(envs)].all()
     # jit and no-jit agree
     with jax.disable_jit():
-        tr2 = her_sample(jax.random.key(3), buf, 512, "future", 0.8, 200)
+        tr2 = her_sample(jax.random.key(3), buf, 512, "future", 0.8, 200)  # one op-by-op pass
     for a, b in zip(jax.tree_util.tree_leaves(tr), jax.tree_util.tree_leaves(tr2)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))

@@ -140,14 +140,13 @@ def test_update_critic_loss_delay_and_polyak_targets():
 
 
 def test_jit_and_no_jit_agree():
-    cfg = CFGS[1]
+    cfg = TD3Config.model_based(hidden=(16,), policy_delay=1)  # one call covers the actor branch
     st = _perturbed_state(cfg, seed=4)
     b = _batch(5)
     s_jit, m_jit = jax.jit(td3_update, static_argnums=0)(cfg, st, b, jax.random.key(0))
-    s_jit, m_jit = jax.jit(td3_update, static_argnums=0)(cfg, s_jit, b, jax.random.key(1))
     with jax.disable_jit():
         s_py, m_py = td3_update(cfg, st, b, jax.random.key(0))
-        s_py, m_py = td3_update(cfg, s_py, b, jax.random.key(1))
+    assert float(m_py["actor_updated"]) == 1.0
     for a, c in zip(jax.tree_util.tree_leaves(s_jit), jax.tree_util.tree_leaves(s_py)):
         np.testing.assert_allclose(np.asarray(a), np.asarray(c), rtol=2e-4, atol=1e-5)
     for k in m_jit:
