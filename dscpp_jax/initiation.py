@@ -5,7 +5,9 @@ of successful rollouts) and negative examples (start states of failed rollouts),
 
 * positives and negatives: optimistic = two-class RBF SVC (C = 1, class_weight "balanced" once
   there are ≥ 10 negatives); pessimistic = one-class ν-SVM (ν = 0.1) fit on the positives the SVC
-  itself calls positive (the previous pessimistic model is kept when there are none);
+  itself calls positive, as the paper's appendix describes (the previous pessimistic model is kept
+  when there are none). The authors' code fit it on every training point the SVC calls positive,
+  negatives included: ``InitiationConfig(pessimistic_examples="all")``;
 * positives only: pessimistic = one-class ν = 0.1, optimistic = one-class ν = 0.01;
 * no positives: nothing changes (an option never fitted contains nothing).
 
@@ -60,6 +62,9 @@ class InitiationConfig:
     and of the positives-only optimistic model. nu_single: ν of the single variant's one-class
     model. balanced_min_negatives: class_weight "balanced" from this many negatives on.
     tol, max_iter: SMO stopping tolerance and step cap (None: ``svm.default_max_iter``).
+    pessimistic_examples: what the dual variant's pessimistic model is fit on: "positives" (the
+    positives the SVC calls positive, the paper) or "all" (every training point the SVC calls
+    positive, negatives included, as the authors' code did).
     """
 
     variant: str = "dual"
@@ -71,6 +76,7 @@ class InitiationConfig:
     balanced_min_negatives: int = 10
     tol: float = 1e-3
     max_iter: int | None = None
+    pessimistic_examples: str = "positives"
 
     def __post_init__(self):
         if self.variant not in VARIANTS:
@@ -87,6 +93,8 @@ class InitiationConfig:
             raise ValueError(f"tol must be > 0, got {self.tol}")
         if self.max_iter is not None and (not isinstance(self.max_iter, int) or self.max_iter < 1):
             raise ValueError(f"max_iter must be a positive int or None, got {self.max_iter!r}")
+        if self.pessimistic_examples not in ("positives", "all"):
+            raise ValueError(f"pessimistic_examples must be 'positives' or 'all', got {self.pessimistic_examples!r}")
         if self.balanced_min_negatives < 0:
             raise ValueError("balanced_min_negatives must be >= 0")
 
@@ -182,9 +190,11 @@ def _fit(pos_xy, pos_mask, neg_xy, neg_mask, prev: InitiationClassifiers, cfg: I
         return InitiationClassifiers(optimistic=opt, pessimistic=opt, optimistic_fitted=opt_fitted,
                                      pessimistic_fitted=opt_fitted)
 
-    # pessimistic: one-class ν on the positives the SVC calls positive (all positives without SVC)
+    # pessimistic: one-class ν on the (positive) training points the SVC calls positive; all
+    # positives when there was no SVC
     called_pos = f_train >= 0  # the SVC's own training predictions (two-class rule: f >= 0)
-    pes_slots = pos_slots & jnp.where(two_class, called_pos, True)
+    candidates = all_slots if cfg.pessimistic_examples == "all" else pos_slots
+    pes_slots = jnp.where(two_class, candidates & called_pos, pos_slots)
     any_pes = jnp.any(pes_slots)
     pes_problem = svm._one_class_problem(X, pes_slots, jnp.float32(cfg.nu_pessimistic), gamma,
                                          svm.one_class_start_bound(cfg.nu_pessimistic, n))

@@ -70,15 +70,27 @@ def agree_where_sure(inside, f_sk, two_class):
 CASES = {"few_negatives": (5, 3), "balanced": (20, 10), "positives_only": (12, 0)}
 
 
-@pytest.mark.parametrize("case", list(CASES))
-def test_dual_classifiers_match_sklearn_pipeline(case):
-    pos, neg = dsc_like(sum(CASES[case]), *CASES[case])
-    clf = ini.fit_initiation(*padded(pos, neg), CFG)
+ALL = ini.InitiationConfig(pessimistic_examples="all")
+
+
+@pytest.mark.parametrize("case,cfg", [(c, CFG) for c in CASES] + [("overlapping", ALL)],
+                         ids=lambda v: v if isinstance(v, str) else v.pessimistic_examples)
+def test_dual_classifiers_match_sklearn_pipeline(case, cfg):
+    if case == "overlapping":  # negatives among the positives: some are called positive
+        pos, neg = dsc_like(4, 6, 0)
+        neg = np.concatenate([pos[::16] + 0.3, dsc_like(5, 1, 12)[1]])
+    else:
+        pos, neg = dsc_like(sum(CASES[case]), *CASES[case])
+    clf = ini.fit_initiation(*padded(pos, neg), cfg)
     g = grid(pos, neg)
     if len(neg):
         svc = sk_svc(pos, neg)
         f_opt = svc.decision_function(g)
-        occ = sk_occ(pos[svc.predict(pos) == 1], 0.1)
+        X = np.concatenate([pos, neg]) if cfg.pessimistic_examples == "all" else pos
+        called = X[svc.predict(X) == 1]
+        if case == "overlapping":
+            assert len(called) > np.sum(svc.predict(pos) == 1)  # the switch matters here
+        occ = sk_occ(called, 0.1)
     else:
         f_opt = sk_occ(pos, 0.01).decision_function(g)
         occ = sk_occ(pos, 0.1)
@@ -184,6 +196,8 @@ def test_bad_config_and_shapes_raise():
         ini.InitiationConfig(nu_pessimistic=0.0)
     with pytest.raises(ValueError, match="gamma"):
         ini.InitiationConfig(gamma=0.0)
+    with pytest.raises(ValueError, match="pessimistic_examples"):
+        ini.InitiationConfig(pessimistic_examples="negatives")
     z = np.zeros((8, 2), np.float32)
     m = np.ones(8, bool)
     with pytest.raises(ValueError, match="pos_mask"):
