@@ -1,5 +1,6 @@
 """Goal-conditioned TD3: NumPy oracles for the networks and targets, delayed updates, jit/no-jit,
 no retracing, and a learning test (TD3+HER reaches goals in a point-mass arena)."""
+import functools
 import time
 
 import jax
@@ -10,7 +11,7 @@ import pytest
 import envs
 from dscpp_jax.her import her_sample
 from dscpp_jax.replay import Transition, TrajStep, replay_add, replay_init
-from dscpp_jax.td3 import (TD3Config, td3_act, td3_explore, td3_init, td3_random_prob,
+from dscpp_jax.td3 import (TD3Config, td3_act, td3_explore as _td3_explore, td3_init, td3_random_prob,
                            td3_target_noise, td3_targets, td3_update, td3_updates, td3_value)
 
 OBS, GOAL, ACT, B = 6, 2, 3, 64
@@ -40,8 +41,16 @@ def np_twin_q(cfg, params, obs, goal, act):
                      for i in range(2)])
 
 
-def _batch(seed, n=B):
-    k = jax.random.split(jax.random.key(seed), 6)
+# Jitted entry points: op-by-op dispatch would compile every primitive separately (slow on CPU).
+_act = jax.jit(td3_act, static_argnums=0)
+_value = jax.jit(td3_value, static_argnums=0)
+_init = jax.jit(td3_init, static_argnums=(1, 2, 3, 4))
+_noise = jax.jit(td3_target_noise, static_argnums=(0, 2))
+
+
+@functools.partial(jax.jit, static_argnums=1)
+def _batch_impl(key, n):
+    k = jax.random.split(key, 6)
     return Transition(
         obs=jax.random.normal(k[0], (n, OBS)),
         action=jax.random.uniform(k[1], (n, ACT), minval=-1, maxval=1),
@@ -52,11 +61,15 @@ def _batch(seed, n=B):
     )
 
 
+def _batch(seed, n=B):
+    return _batch_impl(jax.random.key(seed), n)
+
+
 def _perturbed_state(cfg, seed=0):
     """Targets differ from the online nets (as after training), so mixing them up is caught."""
-    st = td3_init(jax.random.key(seed), OBS, GOAL, ACT, cfg)
-    noise = lambda p, s: jax.tree_util.tree_map(
-        lambda x: x + 0.3 * jax.random.normal(jax.random.key(s), x.shape), p)
+    st = _init(jax.random.key(seed), OBS, GOAL, ACT, cfg)
+    noise = jax.jit(lambda p, s: jax.tree_util.tree_map(
+        lambda x: x + 0.3 * jax.random.normal(jax.random.key(s), x.shape), p), static_argnums=1)
     return st.replace(target_actor_params=noise(st.target_actor_params, seed + 1),
                       target_critic_params=noise(st.target_critic_params, seed + 2))
 
@@ -71,10 +84,10 @@ def test_networks_and_targets_match_numpy(cfg):
     bn = _np(b)
     # actor (tanh / output normalisation) and td3_act clipping
     a_ref = np_actor(cfg, st.actor_params, bn.obs, bn.goal)
-    np.testing.assert_allclose(np.asarray(td3_act(cfg, st.actor_params, b.obs, b.goal)),
+    np.testing.assert_allclose(np.asarray(_act(cfg, st.actor_params, b.obs, b.goal)),
                                np.clip(a_ref, -1, 1), rtol=1e-4, atol=1e-5)
     # targets: r + gamma * c * min_i Q'_i(s', g, clip(pi'(s', g) + clip(noise)))
-    noise = td3_target_noise(cfg, jax.random.key(7), b.action.shape)
+    noise = _noise(cfg, jax.random.key(7), b.action.shape)
     nz = np.asarray(noise, np.float64)
     assert np.abs(nz).max() <= cfg.noise_clip + 1e-6 and np.abs(nz).max() > 0.4  # clipped, not tiny
     a_next = np.clip(np_actor(cfg, st.target_actor_params, bn.next_obs, bn.goal) + nz, -1, 1)
@@ -84,28 +97,28 @@ def test_networks_and_targets_match_numpy(cfg):
     np.testing.assert_allclose(np.asarray(y), y_ref, rtol=1e-4, atol=1e-4)
     # value: min over the online twin critic at the online (clipped) action
     v_ref = np_twin_q(cfg, st.critic_params, bn.obs, bn.goal, np.clip(a_ref, -1, 1)).min(0)
-    np.testing.assert_allclose(np.asarray(td3_value(cfg, st, b.obs, b.goal)), v_ref, rtol=1e-4, atol=1e-4)
+    np.testing.assert_allclose(np.asarray(_value(cfg, st, b.obs, b.goal)), v_ref, rtol=1e-4, atol=1e-4)
 
 
 def test_output_normalisation_bounds_mean_abs_action():
     cfg = TD3Config.model_based(hidden=(16,))
-    st = td3_init(jax.random.key(0), OBS, GOAL, ACT, cfg)
+    st = _init(jax.random.key(0), OBS, GOAL, ACT, cfg)
     scaled = jax.tree_util.tree_map(lambda x: 50.0 * x, st.actor_params)  # large raw outputs
     b = _batch(2)
     a_raw = np_actor(TD3Config.model_free(hidden=(16,)), scaled, *map(np.asarray, (b.obs, b.goal)))
-    a = np.asarray(td3_act(cfg, scaled, b.obs, b.goal))
+    a = np.asarray(_act(cfg, scaled, b.obs, b.goal))
     assert np.abs(np.arctanh(np.clip(a_raw, -0.999999, 0.999999))).mean() > 1.0
     assert np.all(np.abs(a).mean(-1) <= 1.0 + 1e-5)
 
 
 def test_value_is_batched_over_any_leading_shape():
     cfg = CFGS[0]
-    st = td3_init(jax.random.key(0), OBS, GOAL, ACT, cfg)
+    st = _init(jax.random.key(0), OBS, GOAL, ACT, cfg)
     obs = jax.random.normal(jax.random.key(1), (5, 7, OBS))
     goal = jax.random.normal(jax.random.key(2), (5, 7, GOAL))
-    v = td3_value(cfg, st, obs, goal)
+    v = _value(cfg, st, obs, goal)
     assert v.shape == (5, 7)
-    np.testing.assert_allclose(np.asarray(v[2]), np.asarray(td3_value(cfg, st, obs[2], goal[2])), rtol=1e-5)
+    np.testing.assert_allclose(np.asarray(v[2]), np.asarray(_value(cfg, st, obs[2], goal[2])), rtol=1e-5)
 
 
 def test_update_critic_loss_delay_and_polyak_targets():
@@ -116,7 +129,7 @@ def test_update_critic_loss_delay_and_polyak_targets():
     key = jax.random.key(11)
     s1, m1 = update(cfg, st, b, key)
     # critic loss = sum over heads of the mean squared TD error, with the same smoothing noise
-    y = np.asarray(td3_targets(cfg, st, b, td3_target_noise(cfg, key, b.action.shape)))
+    y = np.asarray(jax.jit(td3_targets, static_argnums=0)(cfg, st, b, _noise(cfg, key, b.action.shape)))
     q = np_twin_q(cfg, st.critic_params, *map(np.asarray, (b.obs, b.goal, b.action)))
     np.testing.assert_allclose(float(m1["critic_loss"]), ((q - y) ** 2).mean(-1).sum(), rtol=1e-4)
     # step 1: critic moved, actor and targets untouched
@@ -173,7 +186,7 @@ def test_no_retracing_across_repeated_updates():
         traces["updates"] += 1
         return td3_updates(cfg, st, buffer, key, 3, lambda k, b, n: her_sample(k, b, n, "future"))
 
-    st = td3_init(jax.random.key(0), OBS, GOAL, ACT, cfg)
+    st = _init(jax.random.key(0), OBS, GOAL, ACT, cfg)
     for i in range(4):
         st, _ = one(st, _batch(i), jax.random.key(i))
         st, m = many(st, buf, jax.random.key(i))
@@ -183,9 +196,10 @@ def test_no_retracing_across_repeated_updates():
 
 def test_exploration_and_config():
     cfg = TD3Config.model_free(hidden=(16,))
-    st = td3_init(jax.random.key(0), OBS, GOAL, ACT, cfg)
+    td3_explore = jax.jit(_td3_explore, static_argnums=0)
+    st = _init(jax.random.key(0), OBS, GOAL, ACT, cfg)
     b = _batch(6, n=4000)
-    det = np.asarray(td3_act(cfg, st.actor_params, b.obs, b.goal))
+    det = np.asarray(_act(cfg, st.actor_params, b.obs, b.goal))
     a0 = td3_explore(cfg, st.actor_params, jax.random.key(1), b.obs, b.goal, random_prob=0.0, noise_std=0.0)
     np.testing.assert_allclose(np.asarray(a0), det, rtol=1e-6)
     noisy = np.asarray(td3_explore(cfg, st.actor_params, jax.random.key(1), b.obs, b.goal, random_prob=0.0))
@@ -228,7 +242,7 @@ def _make_learning_run(env, cfg):
         td3, buf, est, seg = carry
         ka, kr = jax.random.split(key)
         goal = est.info["goal"]
-        a = td3_explore(cfg, td3.actor_params, ka, est.obs, goal)
+        a = _td3_explore(cfg, td3.actor_params, ka, est.obs, goal)
         nst = jax.vmap(env.step)(est, a)
         buf = replay_add(buf, TrajStep(est.obs, a, nst.obs, goal, seg))
         done = nst.done > 0
@@ -287,7 +301,7 @@ def test_td3_her_learns_to_reach_goals_in_point_arena():
     jax.block_until_ready(td3)
     wall, cpu = time.time() - t0, time.process_time() - c0
     trained = np.asarray(evaluate(td3.actor_params, jax.random.key(1)))
-    untrained = [np.asarray(evaluate(td3_init(jax.random.key(s), 4, 2, 2, cfg).actor_params,
+    untrained = [np.asarray(evaluate(_init(jax.random.key(s), 4, 2, 2, cfg).actor_params,
                                      jax.random.key(1))).mean() for s in range(3)]
     print(f"\nTD3+HER point arena: success {trained.mean():.2f} (untrained {np.mean(untrained):.2f}); "
           f"{ITERS * STEPS_PER_ITER * N_ENVS} env steps, {ITERS * UPDATES_PER_ITER} updates, "
