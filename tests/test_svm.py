@@ -98,7 +98,7 @@ def test_svc_matches_sklearn_and_invariants(name):
     assert abs(float(model.rho) - (-sk.intercept_[0])) <= 5e-3
     assert np.mean(np.asarray(svm.predict(model, X)) == (sk.predict(X) == 1)) >= 0.999
     it_sk = int(np.sum(sk.n_iter_))
-    assert abs(int(model.n_iter) - it_sk) <= 0.35 * it_sk + 10
+    assert abs(int(model.n_iter) - it_sk) <= 0.25 * it_sk + 5  # same algorithm, same path
     # solver invariants
     coef = np.asarray(model.coef)
     alpha = np.abs(coef)
@@ -124,6 +124,8 @@ def test_one_class_matches_sklearn_and_invariants(name, nu):
     f = np.asarray(svm.decision_function(model, g))
     sure = np.abs(f_sk) > 1e-2 * np.abs(f_sk).max()
     assert np.all((f > 0)[sure] == (f_sk > 0)[sure])
+    it_sk = int(np.sum(sk.n_iter_))
+    assert abs(int(model.n_iter) - it_sk) <= 0.25 * it_sk + 5
     alpha = np.asarray(model.coef)
     assert bool(model.converged)
     assert np.all(alpha >= 0) and np.all(alpha <= 1 + 1e-6) and np.all(alpha[~m] == 0)
