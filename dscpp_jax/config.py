@@ -218,9 +218,11 @@ def preset(name: str = "fast", env: str = "point_u_maze", algo: str = "mb_dscpp"
     paper: B = 1, T = 1000 (one episode per step), one TD3 step per transition, 14,000 x 7 MPC,
       2,001 episodes. Differences from the original: learning happens once per T steps rather than
       after every option rollout; classifiers are refit once per T steps.
-    fast (point-mass twins): 32 envs x 100 steps per iteration, 500-step episodes, 8 warm-up
-      episodes, 512 x 7 MPC with a 64-unit model, 0.25 TD3 steps per transition, gestation 5
-      (the paper's U-maze value, appendix Table 4). Meant for a laptop CPU.
+    fast (point-mass twins): 16 envs x 100 steps per iteration, 500-step episodes, 8 warm-up
+      episodes, 128 x 7 MPC with a 64-unit model, a 64-unit actor/critic trained at 3e-4 with 0.25
+      TD3 steps per transition (also for the model-based variant: 1e-5 learns too slowly for a
+      few-minute budget), gestation 5 (the paper's U-maze value, appendix Table 4), 100k env steps.
+      Meant for a laptop CPU.
     fast (ant): 64 envs x 100 steps, 1000-step episodes, 2,048 x 7 MPC, 0.1 TD3 steps and 0.05
       model steps per transition, gestation 5. Meant for one GPU.
     """
@@ -232,14 +234,14 @@ def preset(name: str = "fast", env: str = "point_u_maze", algo: str = "mb_dscpp"
                     eval_every=10, eval_episodes=1, checkpoint_every=50)
     elif _is_point(env):
         base.update(
-            num_envs=32, steps_per_iter=100, total_env_steps=400_000,
+            num_envs=16, steps_per_iter=100, total_env_steps=100_000,
             episode_length=500, warmup_episodes=8, gestation=5,
             max_options=8, max_pos_traj=50, max_neg=50,
-            td3_updates_per_step=0.25, td3_batch_size=256, td3_hidden=128,
+            td3_updates_per_step=0.25, td3_batch_size=256, td3_hidden=64, td3_lr=3e-4,
             replay_capacity=200_000, model_capacity=100_000,
             dyn_hidden=64, dyn_updates_per_step=0.02, dyn_pretrain_steps=300,
-            dyn_batch_size=256, mpc_samples=512,
-            eval_every=10, eval_episodes=8, checkpoint_every=20,
+            dyn_batch_size=256, mpc_samples=128,
+            eval_every=5, eval_episodes=8, checkpoint_every=10,
         )
     else:
         base.update(

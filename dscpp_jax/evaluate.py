@@ -46,9 +46,13 @@ def _eval_impl(state: T.TrainState, key, num_episodes: int, starts=None) -> Eval
     ex = T.exec_init(config, es.obs, goal)
     chain, td3, dyn, dp_table = state.chain, state.td3, state.dyn, state.dp_table
 
-    def body(carry, k):
-        es, ex, active, success, steps, n_exec, n_succ = carry
-        k_opt, k_act = jax.random.split(k)
+    def cond(carry):
+        t, active = carry[0], carry[3]
+        return (t < L) & jnp.any(active)
+
+    def body(carry):
+        t, es, ex, active, success, steps, n_exec, n_succ, xy_buf, opt_buf, act_buf = carry
+        k_opt, k_act = jax.random.split(jax.random.fold_in(k_run, t))
         obs = es.obs
         ex = T._choose_options(config, env, chain, dp_table, td3, ex, obs, k_opt, active)
         acts = T._policy_actions(config, td3, dyn, obs, ex.subgoal, k_act, False, 0.0)
@@ -62,26 +66,32 @@ def _eval_impl(state: T.TrainState, key, num_episodes: int, starts=None) -> Eval
         onehot = jax.nn.one_hot(jnp.where(ended, ex.option, K), K + 1, dtype=jnp.int32)[:, :K]
         n_exec = n_exec + onehot.sum(0)
         n_succ = n_succ + (onehot * (osucc & ended)[:, None]).sum(0)
-        opt_now = jnp.where(active, ex.option, T.NO_OPTION)
+        opt_buf = opt_buf.at[t].set(jnp.where(active, ex.option, T.NO_OPTION))
+        act_buf = act_buf.at[t].set(active)
+        xy_buf = xy_buf.at[t + 1].set(nes.obs[:, :2])
         ex = ex.replace(option=jnp.where(ended, T.NO_OPTION, ex.option))
         success = success | (done & (nes.info["success"] > 0))
         steps = steps + active.astype(jnp.int32)
         active = active & ~done
-        return (nes, ex, active, success, steps, n_exec, n_succ), (nes.obs[:, :2], opt_now,
-                                                                   active)
+        return (t + 1, nes, ex, active, success, steps, n_exec, n_succ, xy_buf, opt_buf, act_buf)
 
     z = jnp.zeros((K,), jnp.int32)
-    carry0 = (es, ex, jnp.ones((N,), bool), jnp.zeros((N,), bool), jnp.zeros((N,), jnp.int32), z, z)
-    carry, (xy, opt, act) = jax.lax.scan(body, carry0, jax.random.split(k_run, L))
-    _, _, _, success, steps, n_exec, n_succ = carry
-    xy = jnp.concatenate([es.obs[None, :, :2], xy], axis=0)
+    xy0 = jnp.broadcast_to(es.obs[None, :, :2], (L + 1, N, 2))
+    carry0 = (jnp.zeros((), jnp.int32), es, ex, jnp.ones((N,), bool), jnp.zeros((N,), bool),
+              jnp.zeros((N,), jnp.int32), z, z, xy0, jnp.full((L, N), T.NO_OPTION, jnp.int32),
+              jnp.zeros((L, N), bool))
+    carry = jax.lax.while_loop(cond, body, carry0)
+    t_end, es_end, _, _, success, steps, n_exec, n_succ, xy, opt, act = carry
+    # positions after an episode ended stay where it ended
+    last = jnp.take_along_axis(xy, steps[None, :, None], axis=0)
+    xy = jnp.where((jnp.arange(L + 1)[:, None] > steps[None, :])[..., None], last, xy)
     if config.hierarchical:
         cm = T._chain_metrics(config, chain)
         cp, nopt = cm["options/chain_probability"], cm["options/num_options"]
     else:
         cp, nopt = jnp.asarray(jnp.nan), jnp.asarray(1.0)
     return EvalResult(success=success, steps=steps, xy=xy, option=opt,
-                      active=jnp.concatenate([jnp.ones((1, N), bool), act[:-1]], 0),
+                      active=act,
                       option_executions=n_exec, option_successes=n_succ,
                       chain_probability=jnp.asarray(cp, jnp.float32),
                       num_options=jnp.asarray(nopt, jnp.float32))

@@ -1,0 +1,21 @@
+"""Robust Deep Skill Chaining (DSC++) end to end in JAX.
+
+    import jax, dscpp_jax
+    cfg = dscpp_jax.preset("fast", env="point_u_maze", algo="mb_dscpp")
+    state = dscpp_jax.init(jax.random.PRNGKey(0), cfg)
+    for _ in range(10):
+        state, metrics = dscpp_jax.train_step(state)      # jitted, compiles once
+    summary, result = dscpp_jax.evaluate(state)            # jitted, no side effects
+    policy = dscpp_jax.make_policy(state)                  # pure, jit-able
+
+Several seeds in one process: `jax.vmap(lambda k: dscpp_jax.init(k, cfg))(keys)` and
+`jax.jit(jax.vmap(dscpp_jax.train_step_impl))(states)`.
+"""
+from dscpp_jax.config import ALGOS, SUBGOALS, Config, preset
+from dscpp_jax.evaluate import EvalResult, Policy, evaluate, evaluate_episodes, make_policy
+from dscpp_jax.trainer import TrainState, init, make_env, train_step, train_step_impl
+
+__all__ = ["ALGOS", "SUBGOALS", "Config", "preset", "TrainState", "init", "train_step",
+           "train_step_impl", "evaluate", "evaluate_episodes", "EvalResult", "make_policy",
+           "Policy", "make_env"]
+__version__ = "0.1.0"

@@ -1,0 +1,376 @@
+"""Command line: `python -m dscpp_jax.cli train|eval|plot` (the Makefile wraps it).
+
+    python -m dscpp_jax.cli train --env point_u_maze --algo mb_dscpp --seed 0
+    python -m dscpp_jax.cli train --resume runs/point_u_maze-mb_dscpp-s0-...
+    python -m dscpp_jax.cli eval --run runs/<run> [--episodes 16] [--starts "9,9;-9,-9"]
+    python -m dscpp_jax.cli plot runs/<run> [runs/<other> ...] [--out DIR]
+
+Any Config field can be overridden with `--set name=value` (repeatable). Ctrl-C saves a checkpoint
+and exits; `--resume RUN_DIR` continues exactly from the last checkpoint.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import sys
+import time
+from typing import Any, Optional
+
+from dscpp_jax.config import ALGOS, PRESETS, SUBGOALS, Config, parse_value, preset
+
+
+class TrainingDiverged(RuntimeError):
+    """Learning produced NaN/inf; the message names the component."""
+
+
+# ------------------------------------------------------------------------------------------------
+# Config from arguments
+# ------------------------------------------------------------------------------------------------
+def _overrides(pairs: list[str]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for p in pairs or []:
+        if "=" not in p:
+            raise ValueError(f"--set expects name=value, got {p!r}")
+        k, v = p.split("=", 1)
+        k = k.strip().replace("-", "_")
+        out[k] = parse_value(k, v.strip())
+    return out
+
+
+def config_from_args(args) -> Config:
+    kw = _overrides(args.set)
+    for name in ("num_envs", "steps_per_iter", "total_env_steps", "eval_every", "eval_episodes",
+                 "checkpoint_every", "subgoal"):
+        v = getattr(args, name, None)
+        if v is not None:
+            kw[name] = v
+    kw["seed"] = args.seed
+    cfg = preset(args.preset, args.env, args.algo, **kw)
+    cfg.validate()
+    import envs  # unknown env names fail here, before anything is compiled
+    envs.make(cfg.env)
+    return cfg
+
+
+def default_run_dir(cfg: Config, root: str = "runs") -> str:
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    return os.path.join(root, f"{cfg.env}-{cfg.algo}-s{cfg.seed}-{stamp}")
+
+
+def _is_ant(cfg: Config) -> bool:
+    return not cfg.env.startswith("point_")
+
+
+# ------------------------------------------------------------------------------------------------
+# Training driver (host side)
+# ------------------------------------------------------------------------------------------------
+def _check_finite(metrics: dict) -> Optional[str]:
+    import math
+    bad = [k.split("/", 1)[1] for k, v in metrics.items()
+           if k.startswith("finite/") and float(v) < 0.5]
+    for k in ("td3/critic_loss", "td3/actor_loss", "dynamics/loss"):
+        if k in metrics and not math.isfinite(float(metrics[k])):
+            bad.append(k)
+    if not bad:
+        return None
+    names = {"td3": "the TD3 actor/critic parameters", "dynamics": "the dynamics model parameters",
+             "classifiers": "the initiation classifiers (SVM coefficients)"}
+    return ", ".join(names.get(b, b) for b in dict.fromkeys(bad))
+
+
+def train(cfg: Optional[Config] = None, run_dir: Optional[str] = None, resume: bool = False,
+          time_budget: Optional[float] = None, progress: bool = True,
+          max_iterations: Optional[int] = None, initial_state=None):
+    """Train (or resume) a run; returns (state, run_dir). Saves checkpoints and metrics.csv.
+
+    `initial_state` (optional) replaces `init(PRNGKey(seed), cfg)` for a fresh run."""
+    import jax
+    import numpy as np
+
+    from dscpp_jax import checkpoint as ck
+    from dscpp_jax import trainer as T
+    from dscpp_jax.evaluate import evaluate
+    from dscpp_jax.run_logging import RunLogger, read_config, write_config
+
+    if resume:
+        if run_dir is None or not os.path.isdir(run_dir):
+            raise ValueError(f"--resume needs an existing run directory, got {run_dir!r}")
+        saved = Config.from_dict(read_config(run_dir)["config"])
+        cfg = saved if cfg is None else cfg
+    if cfg is None:
+        raise ValueError("train() needs a Config (or resume=True with a run_dir)")
+    cfg.validate()
+    if run_dir is None:
+        run_dir = default_run_dir(cfg)
+    os.makedirs(run_dir, exist_ok=True)
+    if _is_ant(cfg) and jax.default_backend() == "cpu":
+        print(f"WARNING: {cfg.env} is an MJX ant environment meant for a GPU; on a CPU it is very "
+              f"slow. Use a point-mass twin (e.g. point_{cfg.env}) for CPU runs.", file=sys.stderr)
+
+    key = jax.random.PRNGKey(cfg.seed)
+    state = T.init(key, cfg) if initial_state is None else initial_state
+    start_iter = 0
+    if resume and ck.latest_step(run_dir) is not None:
+        state = ck.restore_state(run_dir, state)
+        start_iter = int(state.counters.iteration)
+        print(f"resumed {run_dir} at iteration {start_iter} "
+              f"({int(state.counters.env_steps)} env steps)", file=sys.stderr)
+    else:
+        write_config(run_dir, cfg.to_dict(), {"command": " ".join(sys.argv)})
+    logger = RunLogger(run_dir, resume_iteration=start_iter)
+    ckpt = ck.Checkpointer(run_dir, keep=cfg.keep_checkpoints)
+
+    stop = {"flag": False}
+
+    def on_sigint(signum, frame):
+        if stop["flag"]:
+            raise KeyboardInterrupt
+        stop["flag"] = True
+        print("\ninterrupt: finishing this iteration, saving a checkpoint, then exiting "
+              "(Ctrl-C again to abort without saving)", file=sys.stderr)
+
+    old_handler = signal.signal(signal.SIGINT, on_sigint) if _main_thread() else None
+    pbar = None
+    if progress:
+        try:
+            from tqdm import tqdm
+            pbar = tqdm(total=cfg.total_env_steps, initial=int(state.counters.env_steps),
+                        unit="step", dynamic_ncols=True, desc=f"{cfg.env}/{cfg.algo}")
+        except Exception:  # noqa: BLE001
+            pbar = None
+    t_start = time.time()
+    wall0 = _previous_wall(run_dir)
+    last_eval = float("nan")
+    saved_iter = start_iter
+    try:
+        while int(state.counters.env_steps) < cfg.total_env_steps:
+            if max_iterations is not None and int(state.counters.iteration) - start_iter >= max_iterations:
+                break
+            prev = state
+            t0 = time.time()
+            state, m = T.train_step(state)
+            m = {k: float(v) for k, v in jax.device_get(m).items()}
+            dt = time.time() - t0
+            bad = _check_finite(m)
+            if bad:
+                it = int(prev.counters.iteration)
+                ckpt.save(it, prev)
+                raise TrainingDiverged(
+                    f"learning diverged at iteration {it + 1}: non-finite values in {bad}. The last "
+                    f"finite state was saved (iteration {it}) under {run_dir}/checkpoints. Lower the "
+                    f"learning rates (td3_lr, dyn_lr) or the updates per step and resume or restart.")
+            it = int(state.counters.iteration)
+            row = {"iteration": it, "env_steps": m["counters/env_steps"],
+                   "episodes": m["counters/episodes"], "wall_clock": wall0 + time.time() - t_start,
+                   "time/iteration_s": dt,
+                   "time/env_steps_per_s": cfg.steps_per_iteration_total / max(dt, 1e-9)}
+            row.update({k: v for k, v in m.items() if not k.startswith("counters/")})
+            if cfg.eval_every and (it % cfg.eval_every == 0 or
+                                   int(state.counters.env_steps) >= cfg.total_env_steps):
+                ev, _ = evaluate(state)
+                row.update(ev)
+                last_eval = ev["eval/success_rate"]
+            logger.log(row)
+            if pbar is not None:
+                pbar.update(int(m["counters/env_steps"]) - pbar.n)
+                pbar.set_postfix(episodes=int(m["counters/episodes"]),
+                                 eval_success=f"{last_eval:.2f}",
+                                 options=int(m.get("options/num_options", 1)),
+                                 steps_per_s=f"{row['time/env_steps_per_s']:.0f}", refresh=False)
+            if cfg.checkpoint_every and it % cfg.checkpoint_every == 0:
+                ckpt.save(it, state)
+                saved_iter = it
+            if stop["flag"]:
+                break
+            if time_budget is not None and time.time() - t_start >= time_budget:
+                print(f"time budget of {time_budget:.0f}s reached", file=sys.stderr)
+                break
+        it = int(state.counters.iteration)
+        if it != saved_iter or ck.latest_step(run_dir) is None:
+            ckpt.save(it, state)
+        if stop["flag"]:
+            print(f"saved a checkpoint at iteration {it}; continue with --resume {run_dir}",
+                  file=sys.stderr)
+    finally:
+        if pbar is not None:
+            pbar.close()
+        logger.close()
+        ckpt.close()
+        if old_handler is not None:
+            signal.signal(signal.SIGINT, old_handler)
+    return state, run_dir
+
+
+def _main_thread() -> bool:
+    import threading
+    return threading.current_thread() is threading.main_thread()
+
+
+def _previous_wall(run_dir: str) -> float:
+    from dscpp_jax.run_logging import read_metrics
+    try:
+        w = [x for x in read_metrics(run_dir).get("wall_clock", []) if x == x]
+        return float(w[-1]) if w else 0.0
+    except FileNotFoundError:
+        return 0.0
+
+
+def load_run(run_dir: str, step: Optional[int] = None):
+    """(config, state) of a run directory's latest (or given) checkpoint."""
+    import jax
+
+    from dscpp_jax import checkpoint as ck
+    from dscpp_jax import trainer as T
+    from dscpp_jax.run_logging import read_config
+    cfg = Config.from_dict(read_config(run_dir)["config"])
+    state = ck.restore_state(run_dir, T.init(jax.random.PRNGKey(cfg.seed), cfg), step)
+    return cfg, state
+
+
+def parse_starts(text: Optional[str]):
+    if not text:
+        return None
+    pts = []
+    for part in text.replace(" ", "").split(";"):
+        if part:
+            x, y = part.split(",")
+            pts.append([float(x), float(y)])
+    return pts
+
+
+def cmd_eval(args) -> int:
+    import jax
+    import numpy as np
+
+    from dscpp_jax.evaluate import evaluate
+    cfg, state = load_run(args.run)
+    key = jax.random.PRNGKey(args.seed)
+    starts = parse_starts(args.starts)
+    summary, res = evaluate(state, key, args.episodes, starts)
+    summary["iteration"] = int(state.counters.iteration)
+    summary["env_steps"] = int(state.counters.env_steps)
+    summary["episodes_trained"] = int(state.counters.episodes)
+    if starts is not None:
+        summary["starts"] = starts
+        summary["steps_per_start"] = np.asarray(res.steps).tolist()
+        summary["success_per_start"] = np.asarray(res.success).astype(int).tolist()
+    name = "eval" + ("_starts" if starts else "")
+    out_json = os.path.join(args.run, f"{name}.json")
+    with open(out_json, "w") as f:
+        json.dump(summary, f, indent=2)
+    print(json.dumps({k: v for k, v in summary.items() if "option_success/" not in k
+                      or v == v}, indent=2))
+    if not args.no_plot:
+        from dscpp_jax import plots
+        path = os.path.join(args.run, f"{name}_trajectory.png")
+        plots.plot_trajectory(cfg, res, path, title=f"{cfg.env} {cfg.algo} (iteration "
+                              f"{summary['iteration']})")
+        print(f"wrote {out_json} and {path}")
+    return 0
+
+
+def cmd_plot(args) -> int:
+    from dscpp_jax import plots
+    out = args.out or (os.path.join(args.runs[0], "plots") if len(args.runs) == 1 else "plots")
+    paths = plots.plot_runs(args.runs, out, with_state=not args.curves_only)
+    for p in paths:
+        print(p)
+    return 0
+
+
+def cmd_train(args) -> int:
+    if args.resume:
+        from dscpp_jax.run_logging import read_config
+        cfg = Config.from_dict(read_config(args.resume)["config"])
+        extra = _overrides(args.set)
+        if args.total_env_steps is not None:
+            extra["total_env_steps"] = args.total_env_steps
+        # only schedule-length / host-side fields may change on resume
+        allowed = {"total_env_steps", "eval_every", "eval_episodes", "checkpoint_every",
+                   "keep_checkpoints", "log_every"}
+        bad = sorted(set(extra) - allowed)
+        if bad:
+            raise ValueError(f"--resume cannot change {bad}: they change the state's shapes or the "
+                             f"algorithm; allowed on resume: {sorted(allowed)}")
+        cfg = cfg.override(**extra)
+        run_dir = args.resume
+    else:
+        cfg = config_from_args(args)
+        run_dir = args.run_dir
+    try:
+        state, run_dir = train(cfg, run_dir, resume=bool(args.resume), time_budget=args.time_budget,
+                               progress=not args.no_progress)
+    except TrainingDiverged as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 3
+    if args.resume:
+        from dscpp_jax.run_logging import read_config, write_config
+        payload = read_config(run_dir)
+        write_config(run_dir, cfg.to_dict(), {k: v for k, v in payload.items()
+                                              if k not in ("config", "versions")})
+    import jax
+
+    from dscpp_jax.evaluate import evaluate
+    ev, _ = evaluate(state, num_episodes=cfg.eval_episodes)
+    print(f"run: {run_dir}\nenv steps {int(state.counters.env_steps)}, episodes "
+          f"{int(state.counters.episodes)}, eval success {ev['eval/success_rate']:.2f}, "
+          f"options {int(ev['eval/num_options'])}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m dscpp_jax.cli",
+                                description="Robust Deep Skill Chaining (DSC++) in JAX")
+    sub = p.add_subparsers(dest="cmd", required=True)
+
+    t = sub.add_parser("train", help="train a run (or continue one with --resume)")
+    t.add_argument("--env", default="point_u_maze")
+    t.add_argument("--algo", default="mb_dscpp", choices=ALGOS)
+    t.add_argument("--seed", type=int, default=0)
+    t.add_argument("--preset", default="fast", choices=PRESETS)
+    t.add_argument("--subgoal", default=None, choices=SUBGOALS)
+    t.add_argument("--num-envs", dest="num_envs", type=int, default=None)
+    t.add_argument("--steps-per-iter", dest="steps_per_iter", type=int, default=None)
+    t.add_argument("--total-steps", dest="total_env_steps", type=int, default=None)
+    t.add_argument("--eval-every", dest="eval_every", type=int, default=None)
+    t.add_argument("--eval-episodes", dest="eval_episodes", type=int, default=None)
+    t.add_argument("--checkpoint-every", dest="checkpoint_every", type=int, default=None)
+    t.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                   help="override any Config field (repeatable)")
+    t.add_argument("--run-dir", default=None, help="default: runs/<env>-<algo>-s<seed>-<time>")
+    t.add_argument("--resume", default=None, metavar="RUN_DIR",
+                   help="continue a run from its last checkpoint")
+    t.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
+                   help="checkpoint and stop after this much wall-clock")
+    t.add_argument("--no-progress", action="store_true")
+    t.set_defaults(func=cmd_train)
+
+    e = sub.add_parser("eval", help="evaluate a run's latest checkpoint")
+    e.add_argument("--run", required=True)
+    e.add_argument("--episodes", type=int, default=16)
+    e.add_argument("--starts", default=None, help='start positions "x,y;x,y" (default: task start)')
+    e.add_argument("--seed", type=int, default=0)
+    e.add_argument("--no-plot", action="store_true")
+    e.set_defaults(func=cmd_eval)
+
+    pl = sub.add_parser("plot", help="learning curves (one or many runs) + trajectory/classifier plots")
+    pl.add_argument("runs", nargs="+")
+    pl.add_argument("--out", default=None)
+    pl.add_argument("--curves-only", action="store_true")
+    pl.set_defaults(func=cmd_plot)
+    return p
+
+
+def main(argv: Optional[list[str]] = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except ValueError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

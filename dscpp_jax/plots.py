@@ -1,0 +1,202 @@
+"""PNG plots: trajectories coloured by option (paper Figure 1), each option's optimistic region and
+pessimistic contour (appendix Figure 1), and success rate / number of options over training from
+metrics.csv for one or many runs (mean +- standard error; paper Figure 6, appendix Figure 3)."""
+from __future__ import annotations
+
+import os
+from typing import Optional, Sequence
+
+import numpy as np
+
+
+def _plt():
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    return plt
+
+
+def _draw_maze(ax, layout):
+    from matplotlib.patches import Rectangle
+    for cx, cy, hx, hy in layout.wall_boxes:
+        ax.add_patch(Rectangle((cx - hx, cy - hy), 2 * hx, 2 * hy, color="0.35", zorder=1))
+    xmin, xmax, ymin, ymax = layout.bounds
+    ax.set_xlim(xmin, xmax)
+    ax.set_ylim(ymin, ymax)
+    ax.set_aspect("equal")
+    ax.plot(*layout.start_xy, "o", color="tab:green", ms=8, zorder=5, label="start")
+    ax.plot(*layout.goal_xy, "*", color="gold", mec="k", ms=16, zorder=5, label="goal")
+
+
+def _layout(cfg):
+    from dscpp_jax.trainer import make_env
+    return make_env(cfg).layout
+
+
+def plot_trajectory(cfg, result, path: str, title: str = "", max_episodes: int = 4) -> str:
+    """Executed trajectories (EvalResult) over the maze, each segment coloured by its option."""
+    from matplotlib.collections import LineCollection
+    plt = _plt()
+    xy = np.asarray(result.xy)            # (L+1, N, 2)
+    opt = np.asarray(result.option)       # (L, N)
+    act = np.asarray(result.active)       # (L, N)
+    n = min(max_episodes, xy.shape[1])
+    K = int(cfg.max_options)
+    cmap = plt.get_cmap("tab10" if K <= 10 else "tab20")
+    fig, ax = plt.subplots(figsize=(6, 6))
+    _draw_maze(ax, _layout(cfg))
+    used = set()
+    for e in range(n):
+        m = act[:, e] & (opt[:, e] >= 0)
+        seg = np.stack([xy[:-1, e], xy[1:, e]], axis=1)[m]
+        o = opt[m, e]
+        used.update(int(v) for v in np.unique(o))
+        lc = LineCollection(seg, colors=[cmap(int(v) % cmap.N) for v in o], linewidths=2, zorder=3)
+        ax.add_collection(lc)
+    for o in sorted(used):
+        name = {0: "global", 1: "goal option"}.get(o, f"option {o}")
+        ax.plot([], [], color=cmap(o % cmap.N), lw=3, label=name)
+    ax.legend(loc="best", fontsize=7)
+    succ = float(np.asarray(result.success).mean())
+    ax.set_title(title or f"{cfg.env} {cfg.algo}", fontsize=10)
+    ax.set_xlabel(f"x   (success {succ:.0%} of {xy.shape[1]} episodes; {n} drawn)")
+    ax.set_ylabel("y")
+    _save(fig, path)
+    return path
+
+
+def plot_classifiers(cfg, state, path: str, resolution: int = 80) -> str:
+    """Each fitted option's optimistic region (filled) and pessimistic region (black contour)."""
+    import jax
+    import jax.numpy as jnp
+
+    from dscpp_jax import svm
+    plt = _plt()
+    layout = _layout(cfg)
+    chain = state.chain
+    if chain is None:
+        fig, ax = plt.subplots(figsize=(5, 5))
+        _draw_maze(ax, layout)
+        ax.set_title(f"{cfg.algo}: flat agent, no options")
+        _save(fig, path)
+        return path
+    status = np.asarray(chain.status)
+    fitted = np.asarray(chain.fitted)
+    rows = [k for k in range(1, status.shape[0]) if status[k] != 0 and fitted[k]]
+    xmin, xmax, ymin, ymax = layout.bounds
+    gx, gy = np.meshgrid(np.linspace(xmin, xmax, resolution), np.linspace(ymin, ymax, resolution))
+    grid = jnp.asarray(np.stack([gx.ravel(), gy.ravel()], -1), jnp.float32)
+    ncol = max(1, min(4, len(rows)))
+    nrow = max(1, -(-len(rows) // ncol))
+    fig, axes = plt.subplots(nrow, ncol, figsize=(3.6 * ncol, 3.6 * nrow), squeeze=False)
+    for ax in axes.ravel():
+        ax.axis("off")
+    dec = jax.jit(jax.vmap(svm.decision_function, in_axes=(0, None)))
+    for i, k in enumerate(rows):
+        ax = axes.ravel()[i]
+        ax.axis("on")
+        clf = jax.tree_util.tree_map(lambda a: a[k], chain.clf)
+        opt = np.asarray(dec(jax.tree_util.tree_map(lambda a: a[None], clf.optimistic), grid))[0]
+        pes = np.asarray(dec(jax.tree_util.tree_map(lambda a: a[None], clf.pessimistic), grid))[0]
+        opt = opt.reshape(gx.shape) if bool(clf.optimistic_fitted) else np.full(gx.shape, -1.0)
+        pes = pes.reshape(gx.shape) if bool(clf.pessimistic_fitted) else np.full(gx.shape, -1.0)
+        _draw_maze(ax, layout)
+        ax.contourf(gx, gy, (opt > 0).astype(float), levels=[0.5, 1.5], colors=["tab:red"],
+                    alpha=0.45, zorder=2)
+        if (pes > 0).any() and (pes < 0).any():
+            ax.contour(gx, gy, pes, levels=[0.0], colors="k", linewidths=1.5, zorder=4)
+        pos = np.asarray(chain.pos_xy[k])[np.asarray(chain.pos_mask[k])]
+        if pos.size:
+            ax.scatter(pos[::7, 0], pos[::7, 1], s=2, c="tab:blue", zorder=3)
+        name = "goal option" if k == 1 else f"option {k} (-> {int(chain.parent[k])})"
+        st = {1: "gestation", 2: "mature"}.get(int(status[k]), "")
+        ax.set_title(f"{name}, {st}", fontsize=9)
+        ax.legend().set_visible(False) if ax.get_legend() else None
+    fig.suptitle(f"{cfg.env} {cfg.algo}: optimistic (red) and pessimistic (black) regions",
+                 fontsize=10)
+    _save(fig, path)
+    return path
+
+
+def _curve(run_dir: str, column: str):
+    from dscpp_jax.run_logging import read_metrics
+    m = read_metrics(run_dir)
+    if column not in m:
+        return None
+    x = np.asarray(m["env_steps"], float)
+    y = np.asarray(m[column], float)
+    ok = np.isfinite(y)
+    return (x[ok], y[ok]) if ok.any() else None
+
+
+def plot_curves(run_dirs: Sequence[str], path: str, labels: Optional[Sequence[str]] = None,
+                group: bool = True) -> str:
+    """Eval success and number of options vs env steps. Runs with the same (env, algo) are
+    grouped as seeds: mean +- standard error on a common grid of env steps."""
+    from dscpp_jax.run_logging import read_config
+    plt = _plt()
+    groups: dict[str, list[str]] = {}
+    for r in run_dirs:
+        try:
+            c = read_config(r)["config"]
+            name = f"{c['env']} {c['algo']}" + (f" ({c['subgoal']})" if c.get("subgoal") == "dp" else "")
+        except Exception:  # noqa: BLE001
+            name = os.path.basename(os.path.normpath(r))
+        if not group:
+            name = os.path.basename(os.path.normpath(r))
+        groups.setdefault(name, []).append(r)
+    cols = [("eval/success_rate", "eval success rate (from the start)"),
+            ("options/num_options", "number of options"),
+            ("train/episode_success", "training episode success")]
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4))
+    for (col, ylabel), ax in zip(cols, axes):
+        for name, runs in groups.items():
+            curves = [c for c in (_curve(r, col) for r in runs) if c is not None]
+            if not curves:
+                continue
+            xmax = min(c[0][-1] for c in curves)
+            grid = np.unique(np.concatenate([c[0][c[0] <= xmax] for c in curves]))
+            ys = np.stack([np.interp(grid, c[0], c[1]) for c in curves])
+            mean = ys.mean(0)
+            line, = ax.plot(grid, mean, label=f"{name} (n={len(curves)})")
+            if len(curves) > 1:
+                se = ys.std(0, ddof=1) / np.sqrt(len(curves))
+                ax.fill_between(grid, mean - se, mean + se, color=line.get_color(), alpha=0.25)
+        ax.set_xlabel("env steps")
+        ax.set_ylabel(ylabel)
+        ax.grid(alpha=0.3)
+    axes[0].set_ylim(-0.03, 1.03)
+    axes[0].legend(fontsize=8)
+    _save(fig, path)
+    return path
+
+
+def plot_runs(run_dirs: Sequence[str], out_dir: str, with_state: bool = True) -> list[str]:
+    """All plots for the given runs: curves; for a single run also trajectory + classifiers."""
+    os.makedirs(out_dir, exist_ok=True)
+    paths = [plot_curves(run_dirs, os.path.join(out_dir, "curves.png"))]
+    if with_state:
+        import jax
+
+        from dscpp_jax.cli import load_run
+        from dscpp_jax.evaluate import evaluate
+        for r in run_dirs:
+            tag = "" if len(run_dirs) == 1 else os.path.basename(os.path.normpath(r)) + "_"
+            cfg, state = load_run(r)
+            _, res = evaluate(state, jax.random.PRNGKey(0), max(4, cfg.eval_episodes))
+            it = int(state.counters.iteration)
+            paths.append(plot_trajectory(cfg, res, os.path.join(out_dir, f"{tag}trajectory.png"),
+                                         title=f"{cfg.env} {cfg.algo}, iteration {it}, "
+                                               f"{int(state.counters.env_steps)} env steps"))
+            paths.append(plot_classifiers(cfg, state, os.path.join(out_dir, f"{tag}classifiers.png")))
+    return paths
+
+
+def _save(fig, path: str) -> None:
+    d = os.path.dirname(path)
+    if d:
+        os.makedirs(d, exist_ok=True)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    import matplotlib.pyplot as plt
+    plt.close(fig)

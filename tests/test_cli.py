@@ -1,0 +1,84 @@
+"""The command line end to end on a tiny config: train, checkpoint, resume, Ctrl-C, eval, plot."""
+import json
+import os
+import signal
+
+import pytest
+
+from dscpp_jax import checkpoint as ck
+from dscpp_jax import trainer as T
+from dscpp_jax.cli import main
+from dscpp_jax.run_logging import read_metrics
+
+TINY = ["num_envs=4", "steps_per_iter=20", "episode_length=100", "warmup_episodes=2",
+        "max_options=4", "max_pos_traj=8", "max_neg=8", "buffer_len=10", "option_timeout=40",
+        "gestation=2", "td3_hidden=32", "td3_batch_size=32", "td3_updates_per_step=0.1",
+        "replay_capacity=2000", "model_capacity=2000", "dyn_hidden=16", "dyn_batch_size=32",
+        "dyn_updates_per_step=0.05", "dyn_pretrain_steps=5", "mpc_samples=32", "mpc_horizon=3",
+        "eval_episodes=2"]
+
+
+def _sets(extra=()):
+    out = []
+    for s in list(TINY) + list(extra):
+        out += ["--set", s]
+    return out
+
+
+def test_cli_train_resume_interrupt_eval_plot(tmp_path, monkeypatch, capsys):
+    run = str(tmp_path / "run")
+    rc = main(["train", "--env", "point_u_maze", "--algo", "mb_dscpp", "--seed", "0",
+               "--run-dir", run, "--total-steps", "160", "--eval-every", "1",
+               "--checkpoint-every", "1", "--no-progress"] + _sets())
+    assert rc == 0
+    cfg = json.load(open(os.path.join(run, "config.json")))
+    assert cfg["config"]["algo"] == "mb_dscpp" and "jax" in cfg["versions"]
+    m = read_metrics(run)
+    assert m["iteration"] == [1.0, 2.0]
+    assert m["eval/success_rate"][-1] == m["eval/success_rate"][-1]  # evaluated (not NaN)
+    assert ck.latest_step(run) == 2
+    assert any(f.startswith("events") for f in os.listdir(os.path.join(run, "tb")))
+
+    # resume continues from iteration 2; Ctrl-C during iteration 4 saves and exits cleanly
+    calls = {"n": 0}
+    real = T.train_step
+
+    def interrupting(state):
+        calls["n"] += 1
+        if calls["n"] == 2:
+            signal.raise_signal(signal.SIGINT)
+        return real(state)
+
+    monkeypatch.setattr(T, "train_step", interrupting)
+    rc = main(["train", "--resume", run, "--total-steps", "400", "--no-progress"])
+    assert rc == 0
+    assert ck.latest_step(run) == 4
+    assert read_metrics(run)["iteration"] == [1.0, 2.0, 3.0, 4.0]
+    monkeypatch.setattr(T, "train_step", real)
+    rc = main(["train", "--resume", run, "--total-steps", "400", "--no-progress"])
+    assert rc == 0 and ck.latest_step(run) == 5
+    assert read_metrics(run)["env_steps"][-1] == 400
+    assert main(["train", "--resume", run, "--set", "num_envs=8"]) == 2
+
+    assert main(["eval", "--run", run, "--episodes", "2"]) == 0
+    ev = json.load(open(os.path.join(run, "eval.json")))
+    assert 0.0 <= ev["eval/success_rate"] <= 1.0 and ev["iteration"] == 5
+    assert os.path.exists(os.path.join(run, "eval_trajectory.png"))
+    assert main(["eval", "--run", run, "--starts", "8,8;0,4", "--no-plot"]) == 0
+    assert len(json.load(open(os.path.join(run, "eval_starts.json")))["steps_per_start"]) == 2
+
+    assert main(["plot", run]) == 0
+    for f in ("curves.png", "trajectory.png", "classifiers.png"):
+        assert os.path.getsize(os.path.join(run, "plots", f)) > 1000
+    out = str(tmp_path / "cmp")
+    assert main(["plot", run, run, "--out", out, "--curves-only"]) == 0
+    assert os.path.exists(os.path.join(out, "curves.png"))
+
+
+def test_cli_rejects_bad_input(tmp_path, capsys):
+    assert main(["train", "--env", "no_such_maze", "--run-dir", str(tmp_path / "x")]) == 2
+    assert "valid names" in capsys.readouterr().err
+    assert main(["train", "--set", "gestation=0", "--run-dir", str(tmp_path / "y")]) == 2
+    assert "gestation" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["train", "--algo", "ppo"])

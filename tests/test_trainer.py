@@ -1,0 +1,125 @@
+"""Trainer: config validation, no retracing, vmap over seeds, evaluation without side effects,
+the policy constructor, NaN handling, and real learning on the point-mass U-maze."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import dscpp_jax
+from dscpp_jax import trainer as T
+from dscpp_jax.config import Config, preset
+from tests.test_checkpoint import assert_trees_equal, tiny
+
+
+def test_invalid_configs_fail_before_compiling():
+    with pytest.raises(ValueError, match="choose one of"):
+        Config(algo="ppo").validate()
+    with pytest.raises(ValueError, match="raise replay_capacity"):
+        preset("fast", "point_u_maze", "mf_dscpp", replay_capacity=100).validate()
+    with pytest.raises(ValueError, match="max_options"):
+        Config(max_options=2).validate()
+    with pytest.raises(ValueError, match="unknown config field"):
+        Config().override(not_a_field=1)
+    with pytest.raises(ValueError, match="valid names"):
+        T.init(jax.random.PRNGKey(0), Config(env="no_such_maze"))
+
+
+def test_presets_keep_paper_constants():
+    p = preset("paper", "u_maze", "mb_dscpp")
+    assert (p.gestation, p.buffer_len, p.option_timeout, p.episode_length) == (10, 50, 200, 1000)
+    assert (p.warmup_episodes, p.mpc_samples, p.mpc_horizon, p.num_envs) == (50, 14000, 7, 1)
+    assert p.effective_td3_lr == 1e-5 and preset("paper", "u_maze", "mf_dscpp").effective_td3_lr == 3e-4
+    hash(p)  # static jit argument
+
+
+def test_no_retracing_across_iterations():
+    cfg = tiny("mb_dscpp")
+    s = T.init(jax.random.PRNGKey(0), cfg)
+    s, _ = T.train_step(s)
+    n_train = T.train_step._cache_size()
+    for _ in range(4):   # crosses the end of warm-up, chain growth and refits
+        s, m = T.train_step(s)
+    assert T.train_step._cache_size() == n_train
+    from dscpp_jax.evaluate import evaluate_episodes
+    dscpp_jax.evaluate(s, jax.random.PRNGKey(0), 2)
+    n_eval = evaluate_episodes._cache_size()
+    for i in range(2):
+        s, _ = T.train_step(s)
+        dscpp_jax.evaluate(s, jax.random.PRNGKey(i), 2)
+    assert evaluate_episodes._cache_size() == n_eval
+    assert T.train_step._cache_size() == n_train
+
+
+def test_vmap_over_seeds_equals_separate_runs():
+    cfg = tiny("mf_dscpp")
+    keys = jax.random.split(jax.random.PRNGKey(7), 2)
+    states = jax.vmap(lambda k: T.init(k, cfg))(keys)
+    vstep = jax.jit(jax.vmap(T.train_step_impl))
+    for _ in range(3):
+        states, vm = vstep(states)
+    for i in range(2):
+        s = T.init(keys[i], cfg)
+        for _ in range(3):
+            s, m = T.train_step(s)
+        one = jax.tree_util.tree_map(lambda x: x[i], states)
+        la, lb = jax.tree_util.tree_leaves(one), jax.tree_util.tree_leaves(s)
+        assert len(la) == len(lb)
+        for a, b in zip(la, lb):
+            np.testing.assert_allclose(np.asarray(a, np.float64), np.asarray(b, np.float64),
+                                       rtol=1e-4, atol=1e-4)
+        assert float(vm["counters/env_steps"][i]) == float(m["counters/env_steps"])
+
+
+def test_evaluate_has_no_side_effects_and_takes_starts():
+    cfg = tiny("mf_dscpp")
+    s = T.init(jax.random.PRNGKey(1), cfg)
+    s, _ = T.train_step(s)
+    before = jax.tree_util.tree_map(np.asarray, s)
+    summary, res = dscpp_jax.evaluate(s, jax.random.PRNGKey(0), 3)
+    assert_trees_equal(before, s)
+    assert res.xy.shape == (cfg.episode_length + 1, 3, 2) and res.option.shape == (cfg.episode_length, 3)
+    assert 0.0 <= summary["eval/success_rate"] <= 1.0
+    # a start inside the goal region succeeds at once
+    goal = np.asarray(T.make_env(cfg).goal)
+    summary, res = dscpp_jax.evaluate(s, starts=[goal + 0.1, [0.0, 0.0]])
+    assert bool(res.success[0]) and int(res.steps[0]) == 1
+    # deterministic: same key, same result
+    a = dscpp_jax.evaluate(s, jax.random.PRNGKey(5), 2)[1]
+    b = dscpp_jax.evaluate(s, jax.random.PRNGKey(5), 2)[1]
+    np.testing.assert_array_equal(np.asarray(a.xy), np.asarray(b.xy))
+
+
+def test_make_policy_runs_in_a_jitted_scan():
+    cfg = tiny("mb_dscpp")
+    s = T.init(jax.random.PRNGKey(2), cfg)
+    s, _ = T.train_step(s)
+    env = T.make_env(cfg)
+    policy = dscpp_jax.make_policy(s)
+
+    @jax.jit
+    def rollout(key):
+        es = jax.vmap(env.reset)(jax.random.split(key, 3))
+        carry = policy.init(es.obs)
+
+        def body(c, k):
+            es, pc = c
+            pc, a, o = policy.step(pc, es.obs, k)
+            return (jax.vmap(env.step)(es, a), pc), (es.obs[:, :2], o)
+        _, (xy, opts) = jax.lax.scan(body, (es, carry), jax.random.split(key, 20))
+        return xy, opts
+
+    xy, opts = rollout(jax.random.PRNGKey(0))
+    assert xy.shape == (20, 3, 2) and np.all(np.isfinite(np.asarray(xy)))
+    assert np.all(np.asarray(opts) >= 0)
+
+
+def test_nan_in_learning_stops_with_a_message(tmp_path):
+    from dscpp_jax.cli import TrainingDiverged, train
+    cfg = tiny("mf_dscpp", warmup_episodes=0)
+    s = T.init(jax.random.PRNGKey(0), cfg)
+    bad = s.replace(td3=s.td3.replace(critic_params=jax.tree_util.tree_map(
+        lambda x: jnp.full_like(x, jnp.nan), s.td3.critic_params)))
+    with pytest.raises(TrainingDiverged, match="TD3"):
+        train(cfg, str(tmp_path / "run"), progress=False, initial_state=bad)
+    from dscpp_jax import checkpoint as ck
+    assert ck.latest_step(str(tmp_path / "run")) == 0
