@@ -3,10 +3,9 @@
 For each size (points per option) it builds DSC-like data for 16 options (random-walk
 trajectories of 51 points toward each option's goal + failed start states around it), then times
 
-* JAX: ``fit_initiation_batch`` on all 16 options in one call (vmapped on accelerators; two-class
-  SVC, then the one-class
-  pessimistic SVM on the positives the SVC calls positive) on padded slots of the skill chain's
-  layout (100 trajectories x 51 points + 100 negatives = 5,200 slots per option);
+* JAX: ``fit_initiation_batch`` on all 16 options in one call (vmapped on accelerators): two-class
+  SVC, then the one-class pessimistic SVM on the positives the SVC calls positive, on padded
+  slots of the skill chain's layout (100 trajectories x 51 points + 100 negatives = 5,200 slots per option);
 * scikit-learn: the same pipeline (``SVC.fit``, ``predict`` on the positives, ``OneClassSVM.fit``)
   for the 16 options one after the other, pinned to one CPU core;
 
