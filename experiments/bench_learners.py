@@ -135,6 +135,8 @@ def bench_mpc(variants, env_sizes, num_samples, horizon, use_values=(True,), obs
                 cfg, prec = _mpc_variant(name)
                 cfg = dataclasses.replace(cfg, num_samples=num_samples, horizon=horizon, use_value=use_value)
                 flops = mpc_flops_per_decision(cfg, obs_dim, act_dim, dcfg.hidden)
+                if cfg.ensemble_mode == "mean":  # every member rolls out every sequence
+                    flops *= ensemble_size
 
                 def decide(s, k, obs, goal, cfg=cfg):
                     return mpc_actions(cfg, dcfg, s, k, obs, goal, vf if cfg.use_value else None)
@@ -425,7 +427,9 @@ def replay_quality(npz_path, data_path, gamma=0.95, tol=0.6):
 
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--small", action="store_true", help="CPU-sized run (M=1000, envs 1 and 4, few steps)")
+    p.add_argument("--small", action="store_true", help="CPU-sized run (M=1000, envs 1 and 4, few steps); "
+                   "the default when no GPU is present, unless --full")
+    p.add_argument("--full", action="store_true", help="full sizes even without a GPU")
     p.add_argument("--out", default=None, help="JSON path (default experiments/results/bench_learners[_small].json)")
     p.add_argument("--variants", default=None, help="comma-separated MPC variants (xla_f32, xla_f32_highest, "
                    "xla_bf16, pallas_BM64_W4_S1_C128, ...)")
@@ -458,11 +462,13 @@ def main(argv=None):
         return
 
     import jax
-    small = args.small
+    small = args.small or (jax.default_backend() == "cpu" and not args.full)
+    if small and not args.small:
+        print("no GPU found: running the small CPU-sized benchmark (--full to force full sizes)")
     M = 1000 if small else 14000
     K = 7
     env_sizes = [int(x) for x in (args.envs or ("1,4" if small else "1,32,128,256")).split(",")]
-    variants = (args.variants or ("xla_f32,xla_bf16" if small else "xla_f32,xla_bf16")).split(",")
+    variants = (args.variants or ("xla_f32,xla_bf16" if small else "xla_f32,xla_bf16,pallas")).split(",")
     skip = set(filter(None, args.skip.split(",")))
     out = args.out or os.path.join(ROOT, "experiments", "results",
                                    "bench_learners_small.json" if small else "bench_learners.json")

@@ -33,7 +33,7 @@ def _point_transitions(n, seed=0):
     act = jax.random.uniform(k3, (n, 2), minval=-1.0, maxval=1.0)
     base = env.reset(jax.random.key(0))
     st = jax.vmap(lambda o: base.replace(obs=o))(obs)
-    nxt = jax.vmap(env.step)(st, act).obs
+    nxt = jax.jit(jax.vmap(env.step))(st, act).obs
     return np.asarray(obs), np.asarray(act), np.asarray(nxt)
 
 

@@ -98,7 +98,8 @@ def test_sequence_costs_match_numpy_rollout(mode):
 def test_fused_kernel_interpreted_matches_xla_bf16():
     """The Pallas kernel (interpreted on the CPU) computes what the XLA bfloat16 path computes."""
     dcfg, st = _tiny_model(E=2, obs_dim=29, act_dim=8)
-    cfg = MPCConfig(num_samples=100, horizon=3, compute_dtype="bfloat16", block_rows=32, hidden_chunk=16)
+    cfg = MPCConfig(num_samples=100, horizon=3, compute_dtype="bfloat16", block_rows=32, hidden_chunk=16,
+                    out_chunk=16, ensemble_mode="member")
     obs = np.random.default_rng(1).normal(size=(2, 29)).astype(np.float32)
     goal = obs[:, :2] + np.array([[0.5, 0.0], [0.0, -0.8]], np.float32)
     acts = sample_action_sequences(jax.random.key(0), cfg, 2, 8)
@@ -218,3 +219,19 @@ def test_jit_matches_eager_no_retrace_and_single_env_api():
         mpc_actions(cfg, dcfg, st, jax.random.key(0), obs, goal)
     with pytest.raises(ValueError, match="ensemble_mode"):
         MPCConfig(ensemble_mode="median")
+
+
+def test_fused_kernel_ensemble_mean_interpreted_matches_xla():
+    """Mean-of-members mode inside the kernel equals the XLA mean mode (both bf16 operands)."""
+    dcfg, st = _tiny_model(E=3, obs_dim=29, act_dim=8)
+    cfg = MPCConfig(num_samples=64, horizon=2, compute_dtype="bfloat16", block_rows=32, hidden_chunk=16,
+                    out_chunk=16, ensemble_mode="mean", use_value=False)
+    obs = np.random.default_rng(2).normal(size=(1, 29)).astype(np.float32)
+    goal = obs[:, :2] + np.array([[0.4, 0.3]], np.float32)
+    acts = sample_action_sequences(jax.random.key(1), cfg, 1, 8)
+    ref = sequence_costs(dataclasses.replace(cfg, backend="xla"), dcfg, st, obs, goal, acts)
+    got = sequence_costs(cfg, dcfg, st, obs, goal, acts, interpret=True)
+    np.testing.assert_allclose(got, ref, atol=1e-5)
+    member = sequence_costs(dataclasses.replace(cfg, backend="xla", ensemble_mode="member"), dcfg, st, obs,
+                            goal, acts)
+    assert not np.allclose(member, ref)  # the modes differ, so the comparison above can fail
