@@ -257,8 +257,14 @@ def _buffer_arrays(buffer):
             obs, act, nxt, mask = buffer
         else:
             raise ValueError("buffer tuple must be (obs, act, next_obs[, mask])")
-    else:
-        obs, act, nxt = buffer.obs, buffer.action, buffer.next_obs
+    else:  # a replay ring (``data`` pytree + ``valid``) or any object with the three fields
+        data = getattr(buffer, "data", buffer)
+        get = (lambda k: data[k]) if isinstance(data, dict) else (lambda k: getattr(data, k))
+        try:
+            obs, act, nxt = get("obs"), get("action"), get("next_obs")
+        except (KeyError, AttributeError) as e:
+            raise ValueError("buffer must be (obs, act, next_obs[, mask]) or hold obs/action/next_obs "
+                             f"fields (directly or in .data): {e}") from None
         mask = getattr(buffer, "valid", None)
     obs = _flatten_rows(obs, 1)
     act = _flatten_rows(act, 1)
@@ -270,8 +276,8 @@ def _buffer_arrays(buffer):
 def dynamics_train(cfg: DynamicsConfig, state: DynamicsState, buffer, key, num_steps: int):
     """``num_steps`` Adam steps as one ``lax.scan``; each member samples its own minibatch.
 
-    buffer: (obs, act, next_obs[, mask]) arrays with any leading axes, or a replay object with
-    ``obs``/``action``/``next_obs``/``valid`` fields. Minibatches are drawn uniformly with replacement
+    buffer: (obs, act, next_obs[, mask]) arrays with any leading axes, or a replay ring whose ``data``
+    holds ``obs``/``action``/``next_obs`` (dict or fields) with its ``valid`` mask. Minibatches are drawn uniformly with replacement
     from the valid rows (fixed shapes: inverse-CDF over the mask). Normalisation statistics are NOT
     refreshed here: call :func:`dynamics_fit_normaliser` first. Returns (state, metrics) where metrics
     holds the per-step mean loss (num_steps,).

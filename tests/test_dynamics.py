@@ -183,3 +183,21 @@ def test_train_uses_only_valid_rows():
     st, m = dynamics_train(cfg, st, (obs, act, nxt_bad, mask), jax.random.key(0), 20)
     assert np.isfinite(np.asarray(m["loss"])).all()
     assert all(np.isfinite(np.asarray(x)).all() for x in jax.tree.leaves(st.params))
+
+
+def test_train_reads_a_replay_ring():
+    """dynamics_train takes the device ring replay as is (time-major data + valid mask)."""
+    from dscpp_jax.replay import replay_add, replay_init
+
+    cfg = DynamicsConfig(hidden=(16,), batch_size=32)
+    obs, act, nxt = _point_transitions(40, seed=5)
+    buf = replay_init(dict(obs=obs[0], action=act[0], next_obs=nxt[0]), 64, 4)
+    for t in range(10):  # 10 rows of 4 envs; the rest of the ring stays invalid
+        sl = slice(4 * t, 4 * t + 4)
+        buf = replay_add(buf, dict(obs=obs[sl], action=act[sl], next_obs=nxt[sl]))
+    assert int(buf.valid.sum()) == 40
+    st = dynamics_init(jax.random.key(0), 4, 2, cfg)
+    st = dynamics_fit_normaliser(st, buf.data["obs"], buf.data["action"], buf.data["next_obs"], buf.valid, cfg)
+    np.testing.assert_allclose(st.norm.obs_mean, obs.mean(0), rtol=1e-4, atol=1e-5)
+    st2, m = dynamics_train(cfg, st, buf, jax.random.key(1), 30)
+    assert float(m["loss"][-5:].mean()) < float(m["loss"][:2].mean())
