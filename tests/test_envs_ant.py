@@ -1,0 +1,212 @@
+"""The MJX ant mazes: jit+vmap on every layout, MJX vs MuJoCo C, walls hold, determinism, NaNs.
+
+One jitted, vmapped rollout (reset_at + lax.scan of steps) per layout, with one shape everywhere,
+so each layout compiles once; MuJoCo C is the oracle.
+"""
+import functools
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import pytest
+
+import envs
+from envs.ant_maze import body_points
+
+B, T = 4, 25  # envs per batch, env steps per rollout (>= 20 for the MJX-vs-C check)
+# Penetration allowed for points on the centre lines of the ant's capsules / sphere centres
+# (soft contacts give a few cm under a hard shove; a leg passing through would be > 0.3).
+WALL_TOL = 0.1
+FAST_COMPILE = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True}
+
+
+@functools.lru_cache(maxsize=None)
+def get_env(name):
+    return envs.make(name)
+
+
+@functools.lru_cache(maxsize=None)
+def rollout_fn(name):
+    env = get_env(name)
+
+    def one(key, xy, vel, actions):
+        s = env.reset_at(key, xy)
+        d = s.pipeline_state
+        s = s.replace(pipeline_state=d.replace(qvel=d.qvel.at[:2].set(vel)))
+        s = s.replace(obs=s.obs.at[15:17].set(vel))
+
+        def f(s, a):
+            s = env.step(s, a)
+            d = s.pipeline_state
+            return s, dict(obs=s.obs, reward=s.reward, done=s.done, xpos=d.geom_xpos, xmat=d.geom_xmat)
+        s1, out = jax.lax.scan(f, s, actions)
+        out["qpos0"], out["qvel0"] = d.qpos, s.pipeline_state.qvel
+        return out
+
+    return jax.jit(jax.vmap(one), compiler_options=FAST_COMPILE)
+
+
+def rollout(name, key, xy, vel, actions):
+    out = rollout_fn(name)(jax.random.split(key, B), jnp.asarray(xy, jnp.float32),
+                           jnp.asarray(vel, jnp.float32), jnp.asarray(actions, jnp.float32))
+    return jax.tree.map(np.asarray, out)
+
+
+def random_actions(seed):
+    return np.random.default_rng(seed).uniform(-1, 1, (B, T, 8))
+
+
+def wall_depth(layout, pts):
+    """Penetration depth (> 0 inside) of (..., 2) points into the wall boxes; NumPy."""
+    boxes = np.asarray(layout.wall_boxes)
+    dx = boxes[:, 2] - np.abs(pts[..., None, 0] - boxes[:, 0])
+    dy = boxes[:, 3] - np.abs(pts[..., None, 1] - boxes[:, 1])
+    return np.max(np.minimum(dx, dy), axis=-1)
+
+
+def max_penetration(env, xpos, xmat):
+    pts = body_points(env.mj_model, xpos, xmat.reshape(xpos.shape[:-1] + (3, 3)))
+    below = pts[..., 2] < env.config.wall_height
+    return float(np.max(np.where(below, wall_depth(env.layout, pts[..., :2]), -np.inf)))
+
+
+@pytest.mark.parametrize("name", list(envs.ANT_NAMES))
+def test_every_layout_resets_and_steps_jit_vmap(name):
+    env = get_env(name)
+    start = np.broadcast_to(np.asarray(env.layout.start_xy), (B, 2))
+    out = rollout(name, jax.random.key(0), start, np.zeros((B, 2)), random_actions(0))
+    assert out["obs"].shape == (B, T, 29)
+    assert np.all(np.isfinite(out["obs"]))
+    # Starts at the task start (reset noise U(-0.1, 0.1)), ant stays upright-ish and nearby.
+    assert np.all(np.abs(out["qpos0"][:, :2] - start) <= 0.1 + 1e-6)
+    assert np.all(np.abs(out["obs"][:, -1, :2] - start) < 2.0)
+    assert np.all(out["obs"][:, :, 2] > 0.1)  # torso above the floor: feet-floor contacts work
+    assert np.all(out["reward"] == -1.0) and np.all(out["done"] == 0.0)
+    assert max_penetration(env, out["xpos"], out["xmat"]) < WALL_TOL
+
+
+def c_rollout(env, qpos0, qvel0, actions):
+    m = env.mj_model
+    d = mujoco.MjData(m)
+    d.qpos[:], d.qvel[:] = qpos0, qvel0
+    obs = []
+    for a in actions:
+        env.mujoco_c_step(d, a)
+        obs.append(np.concatenate([d.qpos[:15], d.qvel[:14]]))
+    return np.array(obs)
+
+
+def test_mjx_matches_mujoco_c():
+    """Same MjModel, same initial state and controls: MJX (float32) tracks MuJoCo C (float64).
+
+    Tolerance: over the first 20 env steps (100 physics steps with floor contacts) torso x, y, z
+    within 2e-3 and joint angles within 5e-3 rad; over all 25 steps within 0.05 / 0.1 (float32
+    round-off can flip a contact event late in the rollout). The joints move by > 0.2 rad.
+    """
+    env = get_env("u_maze")
+    acts = random_actions(1)
+    out = rollout("u_maze", jax.random.key(1), np.zeros((B, 2)), np.zeros((B, 2)), acts)
+    for b in range(B):
+        ref = c_rollout(env, out["qpos0"][b], out["qvel0"][b], acts[b])
+        mjx_obs = out["obs"][b]
+        assert np.max(np.abs(mjx_obs[:20, :3] - ref[:20, :3])) < 2e-3
+        assert np.max(np.abs(mjx_obs[:20, 7:15] - ref[:20, 7:15])) < 5e-3
+        assert np.max(np.abs(mjx_obs[:, :3] - ref[:, :3])) < 0.05
+        assert np.max(np.abs(mjx_obs[:, 7:15] - ref[:, 7:15])) < 0.1
+        # Early steps agree tightly, before float32 vs float64 round-off grows through contacts.
+        np.testing.assert_allclose(mjx_obs[:3, :15], ref[:3, :15], atol=5e-3)
+        assert np.max(np.abs(ref[:, 7:15] - ref[0, 7:15])) > 0.2  # the joints did move
+
+
+@pytest.mark.parametrize("name", ["u_maze", "four_rooms"])
+def test_walls_hold_mjx(name):
+    """Ants started next to walls and thrown at them (3 m/s) with bang-bang / random torques."""
+    env = get_env(name)
+    L = env.layout
+    S = L.cell_size
+    # Free cells with a wall on the +x / -y side: start 0.35 S from that face, velocity into it.
+    wall = L.wall_grid()
+    xy, vel = [], []
+    for (x, y) in L.free_cells:
+        j = int(round(x / S)) + L.origin[1]
+        i = int(round(y / S)) + L.origin[0]
+        if wall[i, j + 1]:
+            xy.append((x + 0.15 * S, y)), vel.append((3.0, 0.0))
+        elif wall[i - 1, j]:
+            xy.append((x, y - 0.15 * S)), vel.append((0.0, -3.0))
+        if len(xy) == B:
+            break
+    acts = np.sign(random_actions(2))
+    acts[::2] = np.sign(np.sin(np.arange(T)[:, None] * 0.8 + np.arange(8)))  # rhythmic flailing
+    out = rollout(name, jax.random.key(2), xy, vel, acts)
+    assert np.all(np.isfinite(out["obs"]))
+    assert max_penetration(env, out["xpos"], out["xmat"]) < WALL_TOL
+    # They did hit the wall: the torso reached the face (within torso radius + 0.2).
+    face_gap = [np.min(np.abs(wall_depth(L, out["obs"][b, :, :2]))) for b in range(len(xy))]
+    assert min(face_gap) < 0.45
+
+
+@pytest.mark.parametrize("name,wall_mode", [("u_maze", "proxy"), ("u_maze", "static"),
+                                            ("four_rooms", "proxy"), ("ant_reacher", "proxy")])
+def test_walls_hold_mujoco_c_long_push(name, wall_mode):
+    """Same MjModel in MuJoCo C (the MJX test above checks MJX follows it): 6 episodes x 200 env
+    steps, torso shoved by an external 5 N force in a random direction under random/bang-bang
+    torques; no ant body point goes deeper than WALL_TOL into a wall (proxy and static walls)."""
+    env = envs.make(name, wall_mode=wall_mode)
+    m = env.mj_model
+    d = mujoco.MjData(m)
+    rng = np.random.default_rng(0)
+    worst = -np.inf
+    torso = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, "torso")
+    touched = 0
+    for ep in range(6):
+        mujoco.mj_resetData(m, d)
+        d.qpos[:2] = env.layout.free_cells[rng.integers(len(env.layout.free_cells))]
+        direction = rng.normal(size=2)
+        direction /= np.linalg.norm(direction)
+        for k in range(200):
+            a = rng.uniform(-1, 1, 8) if ep % 2 else np.sign(np.sin(0.5 * k + np.arange(8)))
+            d.xfrc_applied[torso, :2] = 5.0 * direction
+            env.mujoco_c_step(d, a)
+            pts = body_points(m, d.geom_xpos, d.geom_xmat.reshape(-1, 3, 3))
+            pts = pts[pts[:, 2] < env.config.wall_height]
+            worst = max(worst, wall_depth(env.layout, pts[:, :2]).max())
+        touched += wall_depth(env.layout, d.qpos[None, :2])[0] > -0.6
+    assert worst < WALL_TOL, worst
+    assert touched >= 2  # episodes ended pressed against a wall
+
+
+def test_same_key_same_trajectory_and_reset_noise():
+    acts = random_actions(3)
+    a = rollout("u_maze", jax.random.key(7), np.zeros((B, 2)), np.zeros((B, 2)), acts)
+    b = rollout("u_maze", jax.random.key(7), np.zeros((B, 2)), np.zeros((B, 2)), acts)
+    c = rollout("u_maze", jax.random.key(8), np.zeros((B, 2)), np.zeros((B, 2)), acts)
+    np.testing.assert_array_equal(a["obs"], b["obs"])
+    assert not np.allclose(a["obs"], c["obs"])
+    # D4RL reset noise: qpos within +-0.1 of qpos0 (quaternion renormalised), qvel ~ 0.1 N(0, 1).
+    env = get_env("u_maze")
+    q0 = env.mj_model.qpos0.copy()
+    dq = a["qpos0"] - q0
+    assert np.all(np.abs(dq[:, np.r_[0:3, 7:15]]) <= 0.1 + 1e-6)
+    assert 0.02 < np.std(a["qvel0"][:, 2:]) < 0.3
+
+
+def test_success_nan_and_goal_override():
+    env = get_env("u_maze")
+    s = env.reset_at(jax.random.key(0), jnp.array([0.0, 7.8]))
+    step = jax.jit(env.step, compiler_options=FAST_COMPILE)
+    s1 = step(s, jnp.zeros(8))
+    assert float(s1.reward) == 0.0 and float(s1.done) == 1.0 and float(s1.info["success"]) == 1.0
+    # A subgoal replaces the task goal for reward/termination.
+    s2 = step(s.replace(info=dict(s.info, goal=jnp.array([8.0, 8.0]))), jnp.zeros(8))
+    assert float(s2.reward) == -1.0 and float(s2.done) == 0.0
+    # NaN physics: episode ends, reward 0, last finite observation kept.
+    d = s.pipeline_state
+    bad = s.replace(pipeline_state=d.replace(qvel=d.qvel.at[6].set(jnp.nan)))
+    s3 = step(bad, jnp.zeros(8))
+    assert float(s3.info["nan"]) == 1.0 and float(s3.done) == 1.0 and float(s3.reward) == 0.0
+    np.testing.assert_array_equal(np.asarray(s3.obs), np.asarray(s.obs))
+    # Diverse starts for the ant keep the torso out of walls.
+    xy = jax.vmap(env.sample_start)(jax.random.split(jax.random.key(1), 256))
+    assert not np.any(np.asarray(env.layout.in_wall(xy, env.config.start_margin * 0.99)))
