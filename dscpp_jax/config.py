@@ -24,6 +24,9 @@ SUBGOALS = ("robust", "dp")
 PRESETS = ("paper", "fast")
 HIERARCHICAL_ALGOS = ("mb_dscpp", "mf_dscpp", "dual", "dsc")
 MODEL_BASED_ALGOS = ("mb_dscpp", "mb_flat", "mb_flat_value")
+# Fields only the host driver reads (the TrainState carries `Config.device_view()`).
+HOST_ONLY_DEFAULTS = dict(seed=0, total_env_steps=1, eval_every=0, log_every=1,
+                          checkpoint_every=0, keep_checkpoints=1, preset="paper")
 
 
 @dataclass(frozen=True)
@@ -146,6 +149,11 @@ class Config:
         if bad:
             raise ValueError(f"unknown config field(s) {bad}; valid fields: {sorted(names)}")
         return dataclasses.replace(self, **kw)
+
+    def device_view(self) -> "Config":
+        """The fields that shape the jitted computation; host-only fields (seed, schedule length,
+        logging/checkpoint cadence, preset name) reset, so changing them never recompiles."""
+        return dataclasses.replace(self, **HOST_ONLY_DEFAULTS)
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

@@ -122,8 +122,8 @@ def evaluate(state: T.TrainState, key: Optional[jax.Array] = None, num_episodes:
              starts=None) -> tuple[Dict[str, float], EvalResult]:
     """Evaluate from the task start (or `starts`, (N, 2)); returns (scalar metrics, EvalResult).
 
-    The default key depends only on the seed and the iteration, so evaluation never consumes the
-    training PRNG stream.
+    The default key depends only on the iteration, so evaluation never consumes the training
+    PRNG stream.
     """
     cfg = state.config
     if starts is not None:
@@ -131,7 +131,7 @@ def evaluate(state: T.TrainState, key: Optional[jax.Array] = None, num_episodes:
         num_episodes = int(starts.shape[0])
     n = int(num_episodes or cfg.eval_episodes)
     if key is None:
-        key = jax.random.fold_in(jax.random.PRNGKey(cfg.seed + 1_000_003),
+        key = jax.random.fold_in(jax.random.PRNGKey(1_000_003),
                                  int(state.counters.iteration))
     res = evaluate_episodes(state, key, n, starts)
     return summarize(res), res

@@ -135,8 +135,11 @@ def exec_init(config: Config, obs, goal) -> ExecState:
 
 
 def init(key: jax.Array, config: Config) -> TrainState:
-    """A fresh TrainState for `config` (validated first). jit-/vmap-able over `key`."""
-    config.validate()
+    """A fresh TrainState for `config` (validated first). jit-/vmap-able over `key`.
+
+    The state carries `config.device_view()`: host-only fields (seed, schedule length, logging
+    cadence) are reset there so that changing them never recompiles `train_step`."""
+    config = config.validate().device_view()
     env = make_env(config)
     B, od, ad = config.num_envs, env.observation_size, env.action_size
     k_env, k_td3, k_dyn, k_run = jax.random.split(key, 4)
