@@ -100,23 +100,24 @@ def c_rollout(env, qpos0, qvel0, actions):
 def test_mjx_matches_mujoco_c():
     """Same MjModel, same initial state and controls: MJX (float32) tracks MuJoCo C (float64).
 
-    Tolerance: over the first 20 env steps (100 physics steps with floor contacts) torso x, y, z
-    within 2e-3 and joint angles within 5e-3 rad; over all 25 steps within 0.05 / 0.1 (float32
-    round-off can flip a contact event late in the rollout). The joints move by > 0.2 rad.
+    Tolerance (float32 vs float64; a round-off can flip a contact event, after which one
+    trajectory drifts): every env within 1e-4 (torso x, y, z and joint angles) over the first 10
+    env steps and within 0.03 over 20 steps (100 physics steps with floor contacts); most envs
+    within 1e-3 over 20 steps. The joints move by > 0.2 rad.
     """
     env = get_env("u_maze")
     acts = random_actions(1)
     out = rollout("u_maze", jax.random.key(1), np.zeros((B, 2)), np.zeros((B, 2)), acts)
+    close = 0
     for b in range(B):
         ref = c_rollout(env, out["qpos0"][b], out["qvel0"][b], acts[b])
         mjx_obs = out["obs"][b]
-        assert np.max(np.abs(mjx_obs[:20, :3] - ref[:20, :3])) < 2e-3
-        assert np.max(np.abs(mjx_obs[:20, 7:15] - ref[:20, 7:15])) < 5e-3
-        assert np.max(np.abs(mjx_obs[:, :3] - ref[:, :3])) < 0.05
-        assert np.max(np.abs(mjx_obs[:, 7:15] - ref[:, 7:15])) < 0.1
-        # Early steps agree tightly, before float32 vs float64 round-off grows through contacts.
-        np.testing.assert_allclose(mjx_obs[:3, :15], ref[:3, :15], atol=5e-3)
+        err = np.abs(mjx_obs - ref)[:, np.r_[0:3, 7:15]]
+        assert err[:10].max() < 1e-4
+        assert err[:20].max() < 0.03
+        close += err[:20].max() < 1e-3
         assert np.max(np.abs(ref[:, 7:15] - ref[0, 7:15])) > 0.2  # the joints did move
+    assert close >= B - 1
 
 
 @pytest.mark.parametrize("name", ["u_maze", "four_rooms"])
