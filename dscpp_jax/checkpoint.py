@@ -21,14 +21,27 @@ def _is_typed_key(x: Any) -> bool:
     return hasattr(x, "dtype") and jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key)
 
 
+def _empty(x: Any) -> bool:
+    return hasattr(x, "shape") and int(np.prod(np.shape(x))) == 0
+
+
 def to_storable(tree: Any) -> Any:
-    """Replace typed PRNG keys by their uint32 key data."""
-    return jax.tree_util.tree_map(lambda x: jax.random.key_data(x) if _is_typed_key(x) else x, tree)
+    """Replace typed PRNG keys by their uint32 key data, and zero-size arrays (which orbax refuses,
+    e.g. an empty MJX actuator-activation vector) by a one-element placeholder."""
+    def conv(x):
+        if _is_typed_key(x):
+            return jax.random.key_data(x)
+        if _empty(x):
+            return jnp.zeros((1,), x.dtype)
+        return x
+    return jax.tree_util.tree_map(conv, tree)
 
 
 def from_storable(stored: Any, like: Any) -> Any:
     """Inverse of `to_storable`, using `like` (same structure) to know where keys were."""
     def back(s, l):
+        if _empty(l):
+            return jnp.zeros(np.shape(l), l.dtype)
         if _is_typed_key(l):
             try:
                 impl = jax.random.key_impl(l)
@@ -64,6 +77,9 @@ class Checkpointer:
         if step is None:
             raise FileNotFoundError(f"no checkpoint found under {self.directory}")
         stored = self.manager.restore(step, args=ocp.args.StandardRestore(_abstract(like)))
+        # uncommitted default-device arrays, like the outputs of `init` and `train_step`, so the
+        # next call of a jitted function hits its compilation cache
+        stored = jax.tree_util.tree_map(lambda x: jnp.asarray(np.asarray(x)), stored)
         return from_storable(stored, like)
 
     def close(self) -> None:

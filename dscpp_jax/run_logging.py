@@ -98,9 +98,25 @@ class RunLogger:
         with open(self.path, "w", newline="") as f:
             csv.writer(f).writerow(self.columns)
 
+    def _extend(self, new: list[str]) -> None:
+        """Add columns (e.g. the first evaluation's) by rewriting the file with a wider header."""
+        with open(self.path, newline="") as f:
+            rows = list(csv.reader(f))
+        old = self.columns
+        self.columns = list(BASE_COLUMNS) + sorted((set(old) | set(new)) - set(BASE_COLUMNS))
+        idx = {c: i for i, c in enumerate(old)}
+        with open(self.path, "w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(self.columns)
+            for r in rows[1:]:
+                w.writerow([r[idx[c]] if c in idx and idx[c] < len(r) else "" for c in self.columns])
+
     def log(self, row: Mapping[str, Any]) -> None:
         if self.columns is None:
             self._start(list(row))
+        new = [c for c in row if c not in self.columns]
+        if new:
+            self._extend(new)
         with open(self.path, "a", newline="") as f:
             csv.writer(f).writerow([_fmt(row.get(c)) for c in self.columns])
         if self.tb is not None:

@@ -135,11 +135,19 @@ def exec_init(config: Config, obs, goal) -> ExecState:
 
 
 def init(key: jax.Array, config: Config) -> TrainState:
-    """A fresh TrainState for `config` (validated first). jit-/vmap-able over `key`.
+    """A fresh TrainState for `config` (validated first, before anything compiles); jitted, and
+    vmap-able over `key`.
 
     The state carries `config.device_view()`: host-only fields (seed, schedule length, logging
     cadence) are reset there so that changing them never recompiles `train_step`."""
     config = config.validate().device_view()
+    make_env(config)  # unknown env names fail here, not inside a trace
+    return _init_jit(key, config)
+
+
+def init_impl(key: jax.Array, config: Config) -> TrainState:
+    """Un-jitted `init` (for use inside other traced code)."""
+    config = config.device_view()
     env = make_env(config)
     B, od, ad = config.num_envs, env.observation_size, env.action_size
     k_env, k_td3, k_dyn, k_run = jax.random.split(key, 4)
@@ -166,6 +174,9 @@ def init(key: jax.Array, config: Config) -> TrainState:
     return TrainState(env_state=env_state, exec=ex, chain=chain, td3=td3, dyn=dyn, replay=replay,
                       model_replay=model_replay, dp_table=dp_table, counters=counters, key=k_run,
                       config=config)
+
+
+_init_jit = jax.jit(init_impl, static_argnames=("config",))
 
 
 # ------------------------------------------------------------------------------------------------

@@ -56,7 +56,9 @@ def test_resume_equivalence(tmp_path, algo):
     fresh = T.init(jax.random.PRNGKey(99), cfg)          # different contents, same structure
     resumed = ck.restore_state(str(tmp_path), fresh)
     assert_trees_equal(resumed, half)
+    n_compiled = T.train_step._cache_size()
     for _ in range(2):
         resumed, _ = T.train_step(resumed)
+    assert T.train_step._cache_size() == n_compiled   # a restored state does not recompile
     assert int(resumed.counters.iteration) == 4
     assert_trees_equal(resumed, straight)

@@ -82,3 +82,17 @@ def test_cli_rejects_bad_input(tmp_path, capsys):
     assert "gestation" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["train", "--algo", "ppo"])
+
+
+def test_metrics_csv_widens_for_late_columns(tmp_path):
+    from dscpp_jax.run_logging import RunLogger
+    log = RunLogger(str(tmp_path), tensorboard=False)
+    log.log({"iteration": 1, "env_steps": 10, "train/x": 1.0})
+    log.log({"iteration": 2, "env_steps": 20, "train/x": 2.0, "eval/success_rate": 0.5})
+    log.close()
+    m = read_metrics(str(tmp_path))
+    assert m["train/x"] == [1.0, 2.0]
+    assert m["eval/success_rate"][1] == 0.5 and m["eval/success_rate"][0] != m["eval/success_rate"][0]
+    # resuming from iteration 1 drops the later row
+    RunLogger(str(tmp_path), resume_iteration=1, tensorboard=False).close()
+    assert read_metrics(str(tmp_path))["iteration"] == [1.0]
