@@ -172,6 +172,13 @@ def train(cfg: Optional[Config] = None, run_dir: Optional[str] = None, resume: b
                 ev, _ = evaluate(state)
                 row.update(ev)
                 last_eval = ev["eval/success_rate"]
+                if pbar is None:
+                    print(f"[{row['wall_clock']:7.0f}s] it {it} env_steps {int(row['env_steps'])} "
+                          f"episodes {int(row['episodes'])} eval_success {last_eval:.2f} "
+                          f"steps_to_goal {ev['eval/steps_to_goal']:.0f} options "
+                          f"{int(m.get('options/num_options', 1))} train_success "
+                          f"{m.get('train/episode_success', float('nan')):.2f} "
+                          f"steps/s {row['time/env_steps_per_s']:.0f}", flush=True)
             logger.log(row)
             if pbar is not None:
                 pbar.update(int(m["counters/env_steps"]) - pbar.n)
@@ -313,7 +320,16 @@ def cmd_train(args) -> int:
     import jax
 
     from dscpp_jax.evaluate import evaluate
-    ev, _ = evaluate(state, num_episodes=cfg.eval_episodes)
+    ev, res = evaluate(state, num_episodes=cfg.eval_episodes)
+    if args.plot:
+        from dscpp_jax import plots
+        out = os.path.join(run_dir, "plots")
+        it = int(state.counters.iteration)
+        plots.plot_curves([run_dir], os.path.join(out, "curves.png"))
+        plots.plot_trajectory(cfg, res, os.path.join(out, "trajectory.png"),
+                              title=f"{cfg.env} {cfg.algo}, iteration {it}, "
+                                    f"{int(state.counters.env_steps)} env steps")
+        plots.plot_classifiers(cfg, state, os.path.join(out, "classifiers.png"))
     print(f"run: {run_dir}\nenv steps {int(state.counters.env_steps)}, episodes "
           f"{int(state.counters.episodes)}, eval success {ev['eval/success_rate']:.2f}, "
           f"options {int(ev['eval/num_options'])}")
@@ -344,7 +360,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="continue a run from its last checkpoint")
     t.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
                    help="checkpoint and stop after this much wall-clock")
-    t.add_argument("--no-progress", action="store_true")
+    t.add_argument("--no-progress", action="store_true",
+                   help="no progress bar; print one line per evaluation instead")
+    t.add_argument("--plot", action="store_true",
+                   help="at the end, write curves/trajectory/classifier plots to RUN_DIR/plots")
     t.set_defaults(func=cmd_train)
 
     e = sub.add_parser("eval", help="evaluate a run's latest checkpoint")
