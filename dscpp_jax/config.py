@@ -232,7 +232,7 @@ def preset(name: str = "fast", env: str = "point_u_maze", algo: str = "mb_dscpp"
       few-minute budget), gestation 5 (the paper's U-maze value, appendix Table 4), 100k env steps.
       Meant for a laptop CPU.
     fast (ant): 128 envs x 50 steps per iteration, 1000-step episodes, 4,096 x 7 MPC (XLA,
-      float32), 0.25 TD3 steps and 0.1 model steps per transition, TD3 learning rate 1e-4 for the
+      float32), 0.25 TD3 steps (0.5 model free) and 0.1 model steps per transition, TD3 learning rate 1e-4 for the
       model-based variant (3e-4 model free), gestation 5 (10 on four rooms: appendix Table 4),
       2M env steps (the paper's 2,000 episodes). Meant for one GPU.
     """
@@ -257,11 +257,11 @@ def preset(name: str = "fast", env: str = "point_u_maze", algo: str = "mb_dscpp"
         base.update(
             num_envs=128, steps_per_iter=50, total_env_steps=2_000_000,
             gestation=10 if env == "four_rooms" else 5,
-            td3_updates_per_step=0.25, td3_batch_size=256,
+            td3_updates_per_step=0.25 if algo in MODEL_BASED_ALGOS else 0.5, td3_batch_size=256,
             td3_lr=1e-4 if algo in MODEL_BASED_ALGOS else -1.0,
             replay_capacity=1_000_000, model_capacity=300_000,
             dyn_updates_per_step=0.1, dyn_pretrain_steps=2000, mpc_samples=4096,
-            eval_every=10, eval_episodes=8, checkpoint_every=20,
+            eval_every=15, eval_episodes=8, checkpoint_every=30,
         )
     base.update(overrides)
     return Config(**base)
