@@ -149,3 +149,19 @@ def test_dscpp_learns_point_u_maze(algo):
     assert summary["eval/success_rate"] >= 0.8, (summary, int(s.counters.env_steps))
     assert int(s.chain.num_options) >= 3          # global + goal option + at least one link
     assert 0.0 <= summary["eval/chain_probability"] <= 1.0
+
+
+@pytest.mark.parametrize("algo,subgoal", [("td3_her", "robust"), ("mb_flat", "robust"),
+                                          ("mb_flat_value", "robust"), ("dsc", "robust"),
+                                          ("mb_dscpp", "dp")])
+def test_every_algorithm_trains_and_evaluates(algo, subgoal):
+    cfg = tiny(algo, subgoal=subgoal, warmup_episodes=0)
+    s = T.init(jax.random.PRNGKey(0), cfg)
+    for _ in range(3):
+        s, m = T.train_step(s)
+    assert all(np.isfinite(v) for k, v in m.items() if k.startswith(("td3/", "dynamics/")))
+    assert (s.dyn is not None) == cfg.model_based and (s.chain is not None) == cfg.hierarchical
+    summary, res = dscpp_jax.evaluate(s, jax.random.PRNGKey(0), 2)
+    assert 0.0 <= summary["eval/success_rate"] <= 1.0
+    if not cfg.hierarchical:
+        assert np.all(np.asarray(res.option)[np.asarray(res.active)] == 0)   # global option only
