@@ -8,7 +8,7 @@ import pytest
 import dscpp_jax
 from dscpp_jax import trainer as T
 from dscpp_jax.config import Config, preset
-from tests.test_checkpoint import assert_trees_equal, tiny
+from tests.trainer_fixtures import assert_trees_equal, tiny
 
 
 def test_invalid_configs_fail_before_compiling():
