@@ -34,6 +34,7 @@ from brax.envs.base import State
 from mujoco import mjx
 
 from envs import goals
+from envs.goal_env import GoalMazeEnv
 from envs.maze_layout import MazeLayout
 
 # Actuator order of the D4RL ant.
@@ -228,22 +229,16 @@ def body_points(m: mujoco.MjModel, geom_xpos, geom_xmat, n: int = 5):
     return np.stack(pts, axis=-2)
 
 
-class AntMazeEnv:
+class AntMazeEnv(GoalMazeEnv):
     """Goal-conditioned MJX ant maze with a Brax-compatible interface."""
 
     observation_size = 29
     action_size = 8
-    goal_size = 2
     backend = "mjx"
 
     def __init__(self, layout: MazeLayout, config: AntConfig = AntConfig()):
-        self.layout = layout
-        self.config = config
+        super().__init__(layout, config)
         self.name = layout.name
-        self.episode_length = config.episode_length
-        self.goal_tolerance = config.goal_tolerance
-        self.start = jnp.asarray(layout.start_xy, jnp.float32)
-        self.goal = jnp.asarray(layout.goal_xy, jnp.float32)
         self.xml = ant_mjcf(layout, config)
         self.mj_model = mujoco.MjModel.from_xml_string(self.xml)
         self.uses_proxies = use_proxies(layout, config)
@@ -255,10 +250,6 @@ class AntMazeEnv:
         self.set_proxies_c(d0)
         mujoco.mj_forward(self.mj_model, d0)
         self._data0 = mjx.put_data(self.mj_model, d0)
-
-    @property
-    def unwrapped(self):
-        return self
 
     @property
     def dt(self) -> float:
@@ -288,10 +279,6 @@ class AntMazeEnv:
         return mjx.step(self.mjx_model, d)
 
     # ---- API ---------------------------------------------------------------------------------
-    def reset(self, key) -> State:
-        """Episode at the task start with D4RL reset noise."""
-        return self.reset_at(key, self.start)
-
     def reset_at(self, key, xy) -> State:
         """Episode with the torso at xy (+ reset noise: qpos U(-0.1, 0.1), qvel 0.1 N(0, 1))."""
         k1, k2 = jax.random.split(key)
@@ -306,11 +293,6 @@ class AntMazeEnv:
         zero = jnp.zeros((), jnp.float32)
         return State(pipeline_state=data, obs=self._obs(data), reward=zero, done=zero, metrics={},
                      info=goals.initial_info(self.goal))
-
-    def sample_start(self, key):
-        """Diverse start: uniform over free space, `start_margin` from walls, outside the goal region."""
-        return self.layout.sample_free(key, self.goal, margin=self.config.start_margin,
-                                       goal_tolerance=self.goal_tolerance)
 
     def step(self, state: State, action) -> State:
         prev = state.pipeline_state

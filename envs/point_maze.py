@@ -16,6 +16,7 @@ import jax.numpy as jnp
 from brax.envs.base import State
 
 from envs import goals
+from envs.goal_env import GoalMazeEnv
 from envs.maze_layout import MazeLayout
 
 
@@ -33,35 +34,21 @@ class PointConfig:
     substeps: int = 16
 
 
-class PointMazeEnv:
+class PointMazeEnv(GoalMazeEnv):
     """Brax-style env (reset/step over brax.envs.base.State); pipeline_state is None."""
 
     observation_size = 4
     action_size = 2
-    goal_size = 2
     backend = "jax"
 
     def __init__(self, layout: MazeLayout, config: PointConfig = PointConfig()):
-        self.layout = layout
-        self.config = config
-        self.episode_length = config.episode_length
-        self.goal_tolerance = config.goal_tolerance
-        self.start = jnp.asarray(layout.start_xy, jnp.float32)
-        self.goal = jnp.asarray(layout.goal_xy, jnp.float32)
+        super().__init__(layout, config)
         self.name = "point_" + layout.name
-
-    @property
-    def unwrapped(self):
-        return self
 
     def __repr__(self):
         return f"PointMazeEnv({self.layout.name!r})"
 
     # ---- API ---------------------------------------------------------------------------------
-    def reset(self, key) -> State:
-        """Episode at the task start (+ U(-noise, noise) on x, y, clipped out of walls)."""
-        return self.reset_at(key, self.start)
-
     def reset_at(self, key, xy) -> State:
         """Episode with the point at xy (+ reset noise; noise that would enter a wall is dropped)."""
         xy = jnp.asarray(xy, jnp.float32)
@@ -71,11 +58,6 @@ class PointMazeEnv:
         zero = jnp.zeros((), jnp.float32)
         return State(pipeline_state=None, obs=obs, reward=zero, done=zero, metrics={},
                      info=goals.initial_info(self.goal))
-
-    def sample_start(self, key):
-        """Diverse start: uniform over free space, `start_margin` from walls, outside the goal region."""
-        return self.layout.sample_free(key, self.goal, margin=self.config.start_margin,
-                                       goal_tolerance=self.goal_tolerance)
 
     def step(self, state: State, action) -> State:
         c = self.config
