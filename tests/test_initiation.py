@@ -6,30 +6,13 @@ import pytest
 
 from dscpp_jax import initiation as ini
 from dscpp_jax import svm
+from tests.svm_data import dsc_like
 
 sklearn_svm = pytest.importorskip("sklearn.svm")
 
 P, M = 1024, 32  # positive / negative slots
 CFG = ini.InitiationConfig()
 SINGLE = ini.InitiationConfig(variant="single")
-
-
-def dsc_like(seed, n_traj, n_neg):
-    """Random-walk trajectories of 51 points drifting to the origin + failed start states."""
-    rng = np.random.default_rng(seed)
-    trajs = []
-    for _ in range(n_traj):
-        r, th = 4.0 * np.sqrt(rng.uniform()), rng.uniform(0, 2 * np.pi)
-        x = r * np.array([np.cos(th), np.sin(th)])
-        pts = [x.copy()]
-        for _ in range(50):
-            x = x - 0.08 * x / max(np.linalg.norm(x), 1e-6) + rng.normal(0, 0.06, 2)
-            pts.append(x.copy())
-        trajs.append(np.stack(pts))
-    pos = np.concatenate(trajs).astype(np.float32)
-    r, th = rng.uniform(2.5, 8.0, n_neg), rng.uniform(0, 2 * np.pi, n_neg)
-    neg = np.stack([r * np.cos(th), r * np.sin(th)], -1).astype(np.float32).reshape(n_neg, 2)
-    return pos, neg
 
 
 def pad(a, n):
