@@ -118,21 +118,22 @@ def plot_classifiers(cfg, state, path: str, resolution: int = 80) -> str:
     return path
 
 
-def _curve(run_dir: str, column: str):
+def _curve(run_dir: str, column: str, x_column: str = "env_steps"):
     from dscpp_jax.run_logging import read_metrics
     m = read_metrics(run_dir)
-    if column not in m:
+    if column not in m or x_column not in m:
         return None
-    x = np.asarray(m["env_steps"], float)
+    x = np.asarray(m[x_column], float)
     y = np.asarray(m[column], float)
-    ok = np.isfinite(y)
+    ok = np.isfinite(y) & np.isfinite(x)
     return (x[ok], y[ok]) if ok.any() else None
 
 
 def plot_curves(run_dirs: Sequence[str], path: str, labels: Optional[Sequence[str]] = None,
                 group: bool = True) -> str:
-    """Eval success and number of options vs env steps. Runs with the same (env, algo) are
-    grouped as seeds: mean +- standard error on a common grid of env steps."""
+    """Eval success from the start vs env steps, episodes and wall-clock, and the number of
+    options and training-episode success vs env steps. Runs with the same (env, algo) are grouped
+    as seeds: mean +- standard error on a common grid."""
     from dscpp_jax.run_logging import read_config
     plt = _plt()
     groups: dict[str, list[str]] = {}
@@ -145,13 +146,17 @@ def plot_curves(run_dirs: Sequence[str], path: str, labels: Optional[Sequence[st
         if not group:
             name = os.path.basename(os.path.normpath(r))
         groups.setdefault(name, []).append(r)
-    cols = [("eval/success_rate", "eval success rate (from the start)"),
-            ("options/num_options", "number of options"),
-            ("train/episode_success", "training episode success")]
-    fig, axes = plt.subplots(1, 3, figsize=(15, 4))
-    for (col, ylabel), ax in zip(cols, axes):
+    panels = [("env_steps", "eval/success_rate", "eval success rate (from the start)"),
+              ("episodes", "eval/success_rate", "eval success rate (from the start)"),
+              ("wall_clock", "eval/success_rate", "eval success rate (from the start)"),
+              ("env_steps", "options/num_options", "number of options"),
+              ("env_steps", "train/episode_success", "training episode success")]
+    xlabels = {"env_steps": "env steps", "episodes": "training episodes",
+               "wall_clock": "wall-clock (s)"}
+    fig, axes = plt.subplots(1, len(panels), figsize=(5 * len(panels), 4))
+    for (xcol, col, ylabel), ax in zip(panels, axes):
         for name, runs in groups.items():
-            curves = [c for c in (_curve(r, col) for r in runs) if c is not None]
+            curves = [c for c in (_curve(r, col, xcol) for r in runs) if c is not None]
             if not curves:
                 continue
             xmax = min(c[0][-1] for c in curves)
@@ -162,10 +167,11 @@ def plot_curves(run_dirs: Sequence[str], path: str, labels: Optional[Sequence[st
             if len(curves) > 1:
                 se = ys.std(0, ddof=1) / np.sqrt(len(curves))
                 ax.fill_between(grid, mean - se, mean + se, color=line.get_color(), alpha=0.25)
-        ax.set_xlabel("env steps")
+        ax.set_xlabel(xlabels[xcol])
         ax.set_ylabel(ylabel)
         ax.grid(alpha=0.3)
-    axes[0].set_ylim(-0.03, 1.03)
+        if col.endswith("success_rate") or col.endswith("episode_success"):
+            ax.set_ylim(-0.03, 1.03)
     axes[0].legend(fontsize=8)
     _save(fig, path)
     return path

@@ -238,7 +238,8 @@ def _option_end(config: Config, env, chain, ex: ExecState, next_xy, done):
         goal = jnp.asarray(env.goal, jnp.float32)
         term = _option_terminates(config, chain, ex.option, next_xy, goal)
         success = running & term & near
-        timeout = ex.opt_steps + 1 >= config.option_timeout
+        # `ex.opt_steps` counts the steps already taken (the caller has pushed this step)
+        timeout = ex.opt_steps >= config.option_timeout
     else:
         success = running & near
         timeout = jnp.zeros_like(running)

@@ -1,40 +1,77 @@
 #!/usr/bin/env bash
-# MB-DSC++ and MF-DSC++ side by side on one GPU for a wall-clock budget (two processes sharing the
-# device), continuing runs/gpu_<env>_<algo> when a checkpoint of it exists. Writes each run's
-# metrics.csv + trajectory/classifier plots and a combined curves.png under $OUT.
+# Several trainings at once on the GPUs of one host, each for a wall-clock budget, continuing
+# runs/gpu_<env>_<algo> when a checkpoint of it exists. Each job: train (ant `fast` preset),
+# evaluate the final state on EVAL_EPISODES episodes from the task start, write its plots. Results
+# (metrics.csv, config.json, eval.json, plots, logs) go to $OUT/<env>_<algo>/, combined curves to
+# $OUT/curves_<env>.png, and everything into $OUT/results.tgz.
 #
-#   ENV=u_maze BUDGET=420 OUT=experiments/results/train_u_maze bash experiments/run_gpu_training.sh
+#   JOBS="0:u_maze:mb_dscpp 1:four_rooms:mb_dscpp 2:u_maze:mf_dscpp" BUDGET=420 OUT=out \
+#     bash experiments/run_gpu_training.sh
+#   ENV=u_maze ALGOS="mb_dscpp mf_dscpp" BUDGET=420 bash experiments/run_gpu_training.sh  # one GPU
+#
+# A job is GPU:ENV:ALGO; jobs naming the same GPU share it (memory split evenly).
+# EXTRA is appended to every fresh run's command line (e.g. EXTRA="--set max_options=20").
 set -uo pipefail
 ENV=${ENV:-u_maze}
 BUDGET=${BUDGET:-420}
 OUT=${OUT:-experiments/results/train_${ENV}}
 ALGOS=${ALGOS:-"mb_dscpp mf_dscpp"}
 EXTRA=${EXTRA:-}
+EVAL_EPISODES=${EVAL_EPISODES:-32}
+if [ -z "${JOBS:-}" ]; then
+  JOBS=""
+  for a in $ALGOS; do JOBS="$JOBS 0:$ENV:$a"; done
+fi
 mkdir -p "$OUT"
-export XLA_PYTHON_CLIENT_MEM_FRACTION=${XLA_PYTHON_CLIENT_MEM_FRACTION:-0.45}
-nvidia-smi --query-gpu=name,memory.total --format=csv,noheader 2>/dev/null || true
-pids=()
-for algo in $ALGOS; do
-  run=runs/gpu_${ENV}_${algo}
+nvidia-smi --query-gpu=index,name,memory.total --format=csv,noheader 2>/dev/null || true
+
+declare -A per_gpu
+for j in $JOBS; do g=${j%%:*}; per_gpu[$g]=$(( ${per_gpu[$g]:-0} + 1 )); done
+
+run_job() {  # gpu env algo
+  local gpu=$1 env=$2 algo=$3
+  local run=runs/gpu_${env}_${algo} dest=$OUT/${env}_${algo}
+  local frac
+  frac=$(python3 -c "print(round(0.9 / ${per_gpu[$gpu]}, 2))")
+  export CUDA_VISIBLE_DEVICES=$gpu XLA_PYTHON_CLIENT_MEM_FRACTION=$frac
+  local args
   if [ -d "$run/checkpoints" ] && [ -n "$(ls "$run/checkpoints" 2>/dev/null)" ]; then
     args=(--resume "$run")
   else
-    args=(--env "$ENV" --algo "$algo" --seed 0 --run-dir "$run" $EXTRA)
+    args=(--env "$env" --algo "$algo" --seed 0 --run-dir "$run" $EXTRA)
   fi
-  echo "== $algo: python -m dscpp_jax.cli train ${args[*]} --time-budget $BUDGET --no-progress --plot"
+  mkdir -p "$dest"
+  echo "== [gpu $gpu] python -m dscpp_jax.cli train ${args[*]} --time-budget $BUDGET --no-progress --plot"
   python -m dscpp_jax.cli train "${args[@]}" --time-budget "$BUDGET" --no-progress --plot \
-    2>&1 | grep -v -e "warp" -e "^WARNING" | sed "s/^/[$algo] /" &
+    > "$dest/train.log" 2>&1
+  python -m dscpp_jax.cli eval --run "$run" --episodes "$EVAL_EPISODES" > "$dest/eval.log" 2>&1
+  cp "$run/metrics.csv" "$run/config.json" "$run/eval.json" "$dest/" 2>/dev/null
+  cp "$run/plots/trajectory.png" "$run/plots/classifiers.png" "$run/eval_trajectory.png" "$dest/" \
+    2>/dev/null
+  grep -v -e "warp" -e "^WARNING" "$dest/train.log" | tail -n 4 | sed "s/^/[$env $algo] /"
+}
+
+pids=()
+for j in $JOBS; do
+  IFS=: read -r gpu env algo <<< "$j"
+  run_job "$gpu" "$env" "$algo" &
   pids+=($!)
 done
 for p in "${pids[@]}"; do wait "$p"; done
-runs=()
-for algo in $ALGOS; do
-  run=runs/gpu_${ENV}_${algo}
-  runs+=("$run")
-  mkdir -p "$OUT/$algo"
-  cp "$run/metrics.csv" "$OUT/$algo/" 2>/dev/null
-  python -c "import json,sys; d=json.load(open(sys.argv[1])); print(json.dumps(d[\"versions\"]))" "$run/config.json"
-  cp "$run/plots/trajectory.png" "$run/plots/classifiers.png" "$OUT/$algo/" 2>/dev/null
+
+for env in $(for j in $JOBS; do IFS=: read -r _ e _ <<< "$j"; echo "$e"; done | sort -u); do
+  runs=()
+  for j in $JOBS; do
+    IFS=: read -r _ e a <<< "$j"
+    [ "$e" = "$env" ] && runs+=("runs/gpu_${e}_${a}")
+  done
+  python -m dscpp_jax.cli plot "${runs[@]}" --out "$OUT/plots_$env" --curves-only 2>&1 | grep -v warp
+  cp "$OUT/plots_$env/curves.png" "$OUT/curves_$env.png" 2>/dev/null && rm -rf "$OUT/plots_$env"
 done
-python -m dscpp_jax.cli plot "${runs[@]}" --out "$OUT" --curves-only 2>&1 | grep -v warp
-ls -la "$OUT" "$OUT"/*
+for j in $JOBS; do
+  IFS=: read -r _ e a <<< "$j"
+  python3 -c "import json,sys; d=json.load(open(sys.argv[1])); print(sys.argv[2], {k: round(v, 3) if isinstance(v, float) else v for k, v in d.items() if '/' not in k or k in ('eval/success_rate', 'eval/steps_to_goal', 'eval/num_options')})" \
+    "runs/gpu_${e}_${a}/eval.json" "$e/$a" 2>/dev/null
+done
+(cd "$OUT" && tar czf results.tgz --exclude results.tgz .)
+ls -la "$OUT"

@@ -113,6 +113,31 @@ def test_make_policy_runs_in_a_jitted_scan():
     assert np.all(np.asarray(opts) >= 0)
 
 
+def test_options_time_out_after_exactly_option_timeout_steps():
+    cfg = tiny("mf_dscpp")                      # option_timeout = 40
+    s = T.init(jax.random.PRNGKey(3), cfg)
+    env, B = T.make_env(cfg), cfg.num_envs
+    far = jnp.full((B, 2), 100.0)              # never reached: only the timeout can end it
+    xy = s.env_state.obs[:, :2]
+    ex = s.exec.replace(option=jnp.zeros((B,), jnp.int32), subgoal=far,
+                        opt_steps=jnp.zeros((B,), jnp.int32))
+    ends = []
+    for _ in range(cfg.option_timeout + 1):
+        ex = T._push_traj(ex, xy)               # training: one step taken, then the end test
+        ended, _ = T._option_end(s.config, env, s.chain, ex, xy, jnp.zeros((B,)))
+        ends.append(bool(ended.all()) if bool(ended.any()) else False)
+    assert ends.index(True) == cfg.option_timeout - 1   # ends right after step 40
+    # the policy constructor counts the same way: 40 steps of one execution, then a new one
+    policy = dscpp_jax.make_policy(s)
+    pc = policy.init(s.env_state.obs)
+    counts = []
+    for i in range(cfg.option_timeout + 1):
+        pc, _, _ = policy.step(pc.replace(subgoal=jnp.where(pc.option[:, None] >= 0, far, pc.subgoal)),
+                               s.env_state.obs, jax.random.PRNGKey(i))
+        counts.append(int(pc.opt_steps[0]))
+    assert counts == list(range(1, cfg.option_timeout + 1)) + [1]
+
+
 def test_nan_in_learning_stops_with_a_message(tmp_path):
     from dscpp_jax.cli import TrainingDiverged, train
     cfg = tiny("mf_dscpp", warmup_episodes=0)

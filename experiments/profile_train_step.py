@@ -1,0 +1,127 @@
+"""Where the time of one `train_step` goes, per component, at several environment counts.
+
+    python experiments/profile_train_step.py --env u_maze --num-envs 128 512 --out prof.json
+    python experiments/profile_train_step.py --env point_u_maze --num-envs 16 --small   # CPU smoke
+
+For each B it times (median of repeated jitted calls, results blocked on):
+  env       T steps of the B vmapped environments with random actions (physics alone)
+  mpc       one batched MPC decision for B environments (T of them per iteration)
+  rollout_warmup / rollout_policy   the whole T-step collection scan (warm-up: random actions;
+            policy: options, subgoals, MPC or actor, recording, replay writes)
+  learn     TD3 + dynamics updates, classifier refits, chain growth (fresh chain: refits are cheap
+            here; experiments/bench_options.py times refits on full buffers)
+  train_step  the jitted train_step after warm-up
+and prints env steps/s for each. Writes JSON with the device, versions and command.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import sys
+import time
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+if ROOT not in sys.path:
+    sys.path.insert(0, ROOT)
+
+
+def _time(fn, *args, reps=3):
+    import jax
+    jax.block_until_ready(fn(*args))  # compile + warm
+    ts = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        ts.append(time.perf_counter() - t0)
+    return statistics.median(ts)
+
+
+def profile(env_name: str, algo: str, B: int, overrides: dict, reps: int) -> dict:
+    import jax
+    import jax.numpy as jnp
+
+    from dscpp_jax import trainer as T
+    from dscpp_jax.config import preset
+
+    cfg = preset("fast", env_name, algo, num_envs=B, **overrides).validate()
+    env = T.make_env(cfg)
+    Tn = cfg.steps_per_iter
+    t0 = time.perf_counter()
+    state = T.init(jax.random.PRNGKey(0), cfg)
+    jax.block_until_ready(state)
+    t_init = time.perf_counter() - t0
+    post = state.replace(counters=state.counters.replace(
+        episodes=jnp.asarray(10 ** 6, jnp.int32), warmup_done=jnp.asarray(True)))
+
+    @jax.jit
+    def env_only(es, key):
+        def body(es, k):
+            a = jax.random.uniform(k, (B, env.action_size), jnp.float32, -1.0, 1.0)
+            return jax.vmap(env.step)(es, a), None
+        return jax.lax.scan(body, es, jax.random.split(key, Tn))[0]
+
+    out = {"num_envs": B, "steps_per_iter": Tn, "init_s": t_init}
+    k = jax.random.PRNGKey(1)
+    out["env_s"] = _time(env_only, state.env_state, k, reps=reps)
+    if cfg.model_based:
+        vf = T._value_fn(cfg, state.td3) if cfg.uses_value_in_mpc else None
+        mpc = jax.jit(lambda d, kk, o, g: T._mpc_actions(cfg, d, kk, o, g, vf))
+        obs = state.env_state.obs
+        goals = jnp.broadcast_to(jnp.asarray(env.goal, jnp.float32), (B, 2))
+        out["mpc_decision_s"] = _time(mpc, state.dyn, k, obs, goals, reps=reps)
+        out["mpc_s"] = out["mpc_decision_s"] * Tn
+    roll = jax.jit(T._rollout)
+    out["rollout_warmup_s"] = _time(roll, state, k, reps=reps)
+    out["rollout_policy_s"] = _time(roll, post, k, reps=reps)
+    learn = jax.jit(T._learn)
+    out["learn_s"] = _time(learn, post, k, reps=reps)
+    out["train_step_s"] = _time(T.train_step, post, reps=reps)
+    n = B * Tn
+    out["env_steps_per_s"] = {name: n / out[name] for name in
+                              ("env_s", "rollout_warmup_s", "rollout_policy_s", "train_step_s")}
+    return out
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--env", default="u_maze")
+    p.add_argument("--algo", default="mb_dscpp")
+    p.add_argument("--num-envs", type=int, nargs="+", default=[128, 512])
+    p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE")
+    p.add_argument("--reps", type=int, default=3)
+    p.add_argument("--out", default=None)
+    args = p.parse_args(argv)
+
+    import jax
+
+    from dscpp_jax.config import parse_value
+    overrides = {}
+    for s in args.set:
+        name, v = s.split("=", 1)
+        overrides[name] = parse_value(name, v)
+    d = jax.devices()[0]
+    res = {"command": " ".join([os.path.basename(sys.executable)] + sys.argv),
+           "device": getattr(d, "device_kind", d.platform), "jax": jax.__version__,
+           "python": platform.python_version(), "env": args.env, "algo": args.algo,
+           "overrides": overrides, "results": []}
+    for B in args.num_envs:
+        r = profile(args.env, args.algo, B, overrides, args.reps)
+        res["results"].append(r)
+        print(json.dumps(r), flush=True)
+    print(f"\n{'B':>6} {'env':>9} {'mpc':>9} {'roll-warm':>9} {'roll-pol':>9} {'learn':>9} "
+          f"{'step':>9} {'steps/s':>9}   (seconds per iteration)")
+    for r in res["results"]:
+        print(f"{r['num_envs']:>6} {r['env_s']:9.3f} {r.get('mpc_s', float('nan')):9.3f} "
+              f"{r['rollout_warmup_s']:9.3f} {r['rollout_policy_s']:9.3f} {r['learn_s']:9.3f} "
+              f"{r['train_step_s']:9.3f} {r['env_steps_per_s']['train_step_s']:9.0f}")
+    if args.out:
+        with open(args.out, "w") as f:
+            json.dump(res, f, indent=2)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
