@@ -56,6 +56,8 @@ class Config:
     max_neg: int = 100
     svm_gamma: float = 0.5
     diverse_starts: bool = True        # training episodes after warm-up start anywhere free
+    eval_prefer_pessimistic: bool = True  # evaluation's policy over options tries pessimistic
+                                       # regions first (False: the paper's walk, as in training)
 
     # --- TD3 + HER ----------------------------------------------------------------------------
     td3_hidden: int = 256

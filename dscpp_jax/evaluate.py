@@ -54,7 +54,8 @@ def _eval_impl(state: T.TrainState, key, num_episodes: int, starts=None) -> Eval
         t, es, ex, active, success, steps, n_exec, n_succ, xy_buf, opt_buf, act_buf = carry
         k_opt, k_act = jax.random.split(jax.random.fold_in(k_run, t))
         obs = es.obs
-        ex = T._choose_options(config, env, chain, dp_table, td3, ex, obs, k_opt, active)
+        ex = T._choose_options(config, env, chain, dp_table, td3, ex, obs, k_opt, active,
+                               evaluation=True)
         acts = T._policy_actions(config, td3, dyn, obs, ex.subgoal, k_act, False, 0.0)
         nes = jax.vmap(env.step)(es, acts)
         nes = jax.tree_util.tree_map(
@@ -170,7 +171,8 @@ def make_policy(state: T.TrainState, deterministic: bool = True) -> Policy:
         started = ex.opt_steps > 0
         ex = ex.replace(option=jnp.where(ended & started, T.NO_OPTION, ex.option))
         k_opt, k_act = jax.random.split(key)
-        ex = T._choose_options(config, env, chain, dp_table, td3, ex, obs, k_opt)
+        ex = T._choose_options(config, env, chain, dp_table, td3, ex, obs, k_opt,
+                               evaluation=deterministic)
         p = T.td3_random_prob(tcfg, state.counters.option_successes)
         acts = T._policy_actions(config, td3, dyn, obs, ex.subgoal, k_act, not deterministic, p)
         ex = ex.replace(opt_steps=ex.opt_steps + 1)

@@ -255,13 +255,18 @@ def local_success(chain: Chain, o, xy, subgoal, task_goal=None) -> jax.Array:
     return near & option_terminates(chain, o, xy, task_goal)
 
 
-def select_option(chain: Chain, xy, at_subgoal=None) -> jax.Array:
+def select_option(chain: Chain, xy, at_subgoal=None, prefer_pessimistic: bool = False) -> jax.Array:
     """The policy over options at xy (2,): walk the chain from the goal option outward and take
     the first option that can initiate and is not already done; else the global option (0).
 
     ``at_subgoal`` (optional, (K,) bool) says which options count as already done (e.g. computed
     with :func:`local_success` against freshly sampled subgoals, as the original did); by default an
-    option is done where it already terminates (:func:`in_termination_region`). Returns int32.
+    option is done where it already terminates (:func:`in_termination_region`).
+    ``prefer_pessimistic``: first walk the chain with the mature options' pessimistic regions alone
+    (the stable part of each initiation set) and use the full walk only when none holds xy. The
+    optimistic regions exist to explore; between refits one can swell over states its option cannot
+    start from, and a policy that trusts it there repeats the same failure (no learning happens
+    during evaluation). Off by default (the paper's walk). Returns int32.
     """
     K = chain.cfg.max_options
     ini, pess = _classify_all(chain, xy)
@@ -276,8 +281,13 @@ def select_option(chain: Chain, xy, at_subgoal=None) -> jax.Array:
         if at_subgoal.shape != (K,):
             raise ValueError(f"select_option: at_subgoal must have shape ({K},), got "
                              f"{at_subgoal.shape}")
-    cand = init & ~at_subgoal & (jnp.arange(K) >= GOAL)
-    return jnp.where(cand.any(), jnp.argmax(cand), GLOBAL).astype(jnp.int32)
+    chain_rows = jnp.arange(K) >= GOAL
+    cand = init & ~at_subgoal & chain_rows
+    choice = jnp.where(cand.any(), jnp.argmax(cand), GLOBAL)
+    if prefer_pessimistic:
+        safe = (chain.status == MATURE) & pess & ~at_subgoal & chain_rows
+        choice = jnp.where(safe.any(), jnp.argmax(safe), choice)
+    return choice.astype(jnp.int32)
 
 
 # ------------------------------------------------------------------------------------------------

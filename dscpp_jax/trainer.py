@@ -183,8 +183,10 @@ _init_jit = jax.jit(init_impl, static_argnames=("config",))
 # Acting (shared by training and evaluation)
 # ------------------------------------------------------------------------------------------------
 def _choose_options(config: Config, env, chain, dp_table, td3, ex: ExecState, obs, key,
-                    active=None):
-    """Start an option (and pick its subgoal) in every env whose `ex.option` is NO_OPTION."""
+                    active=None, evaluation: bool = False):
+    """Start an option (and pick its subgoal) in every env whose `ex.option` is NO_OPTION.
+    `evaluation`: the policy over options prefers pessimistic regions when
+    `config.eval_prefer_pessimistic` is set."""
     B = obs.shape[0]
     xy = obs[:, :2]
     goal = jnp.asarray(env.goal, jnp.float32)
@@ -193,7 +195,8 @@ def _choose_options(config: Config, env, chain, dp_table, td3, ex: ExecState, ob
         need = need & active
     if config.hierarchical:
         keys = jax.random.split(key, B)
-        new_opt = _select_option(config, chain, xy)                            # (B,)
+        pessimistic_first = evaluation and config.eval_prefer_pessimistic
+        new_opt = _select_option(config, chain, xy, pessimistic_first)        # (B,)
         sub = _pick_subgoals(config, chain, dp_table, td3, new_opt, obs, keys)  # (B, 2)
     else:
         new_opt = jnp.full((B,), GLOBAL_OPTION, jnp.int32)
@@ -490,9 +493,9 @@ def _dp_table_init(config: Config, chain):
     return dp_table_init(chain)
 
 
-def _select_option(config: Config, chain, xy):
+def _select_option(config: Config, chain, xy, prefer_pessimistic: bool = False):
     from dscpp_jax.options import select_option
-    return jax.vmap(lambda p: select_option(chain, p))(xy)
+    return jax.vmap(lambda p: select_option(chain, p, prefer_pessimistic=prefer_pessimistic))(xy)
 
 
 def _value_fn(config: Config, td3):

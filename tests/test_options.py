@@ -354,6 +354,38 @@ def test_policy_over_options(grown_chain):
     assert int(select(ch3, _uncovered_point(ch3))) == 3
 
 
+def _ref_select_pessimistic_first(ch, xy):
+    from dscpp_jax import initiation as I
+
+    xy = jnp.asarray(xy, jnp.float32)
+    for k in range(1, int(ch.num_options)):
+        if int(ch.status[k]) != O.MATURE or not bool(I.pessimistic_contains(_row(ch, k), xy)):
+            continue
+        if k == O.GOAL:
+            done = np.linalg.norm(np.asarray(xy) - GOAL_XY) <= CFG.goal_tolerance
+        else:
+            done = bool(I.pessimistic_contains(_row(ch, int(ch.parent[k])), xy))
+        if not done:
+            return k
+    return _ref_select(ch, xy)
+
+
+def test_policy_over_options_pessimistic_first(grown_chain):
+    # a few failures of link 2 far from the start turn its optimistic region into a two-class SVC
+    # that is positive far from all data, the start included: the paper's walk then picks link 2
+    # at the start, the pessimistic-first walk keeps link 3, whose pessimistic region holds it
+    ch = _events(grown_chain["covered"], 2, REGIONS[2], 0, n_fail=3, seed=9,
+                 fail_center=np.array([6.0, 4.0], np.float32))
+    ch = refit(ch)
+    sel = jax.jit(lambda c, p: O.select_option(c, p, prefer_pessimistic=True))
+    assert int(select(ch, START_XY)) == 2 and int(sel(ch, START_XY)) == 3
+    for x in np.linspace(-3, 3, 7):
+        for y in np.linspace(-2, 10, 25):
+            xy = np.array([x, y], np.float32)
+            assert int(sel(ch, xy)) == _ref_select_pessimistic_first(ch, xy), xy
+            assert int(select(ch, xy)) == _ref_select(ch, xy), xy
+
+
 def test_termination_and_local_success(grown_chain):
     from dscpp_jax import initiation as I
 

@@ -190,3 +190,29 @@ def test_every_algorithm_trains_and_evaluates(algo, subgoal):
     assert 0.0 <= summary["eval/success_rate"] <= 1.0
     if not cfg.hierarchical:
         assert np.all(np.asarray(res.option)[np.asarray(res.active)] == 0)   # global option only
+
+
+def test_nan_physics_ends_that_episode_and_stays_out_of_learning():
+    # ant U-maze (MJX, few steps): one environment's physics state is corrupted with NaN
+    cfg = preset("fast", "u_maze", "mb_dscpp", num_envs=2, steps_per_iter=3, warmup_episodes=0,
+                 episode_length=50, max_options=4, max_pos_traj=4, max_neg=4, buffer_len=10,
+                 option_timeout=20, td3_hidden=16, td3_batch_size=8, replay_capacity=100,
+                 model_capacity=100, dyn_hidden=16, dyn_batch_size=8, dyn_pretrain_steps=1,
+                 mpc_samples=8, mpc_horizon=2, mpc_dtype="float32", eval_every=0)
+    s = T.init(jax.random.PRNGKey(0), cfg)
+    d = s.env_state.pipeline_state
+    bad = s.replace(env_state=s.env_state.replace(
+        pipeline_state=d.replace(qvel=d.qvel.at[0, 6].set(jnp.nan))))
+    s2, m = T.train_step(bad)
+    assert float(m["train/nan_physics_steps"]) == 1.0
+    assert int(s2.counters.episodes) == 1                      # that episode ended (and restarted)
+    assert np.all(np.isfinite(np.asarray(s2.env_state.obs)))
+    assert np.all(np.isfinite(np.asarray(s2.env_state.pipeline_state.qvel)))
+    for buf in (s2.replay, s2.model_replay):
+        valid = np.asarray(buf.valid)
+        assert valid.sum() == cfg.num_envs * cfg.steps_per_iter - 1   # the NaN step was not stored
+        for leaf in jax.tree_util.tree_leaves(buf.data):
+            x = np.asarray(leaf)
+            if np.issubdtype(x.dtype, np.floating):
+                assert np.all(np.isfinite(x[valid]))
+    assert all(np.isfinite(v) for k, v in m.items() if k.startswith(("td3/", "dynamics/")))
