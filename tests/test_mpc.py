@@ -1,5 +1,6 @@
 """Random-shooting MPC: eq. 2 cost against NumPy, rollouts against a NumPy MLP, the fused kernel
-(interpreted on the CPU) against the XLA path, and goal reaching on the point mass."""
+(interpreted on the CPU) against the XLA path, the terminal value fused into the kernel against
+td3_value, and goal reaching on the point mass."""
 import dataclasses
 
 import jax
@@ -9,8 +10,11 @@ import pytest
 
 import envs
 from dscpp_jax.dynamics import DynamicsConfig, dynamics_fit_normaliser, dynamics_init, dynamics_train
-from dscpp_jax.mpc import (MPCConfig, mpc_action, mpc_actions, mpc_cost, sample_action_sequences,
-                           sequence_costs, shooting_actions)
+from dscpp_jax import mpc as mpc_lib
+from dscpp_jax.dynamics import dynamics_fold
+from dscpp_jax.mpc import (MPCConfig, mpc_action, mpc_actions, mpc_cost, rollout_xy, sample_action_sequences,
+                           sequence_costs, shooting_actions, td3_value_net, value_net_fn)
+from dscpp_jax.td3 import TD3Config, td3_init, td3_value
 
 TOL = 0.6
 
@@ -235,3 +239,104 @@ def test_fused_kernel_ensemble_mean_interpreted_matches_xla():
     member = sequence_costs(dataclasses.replace(cfg, backend="xla", ensemble_mode="member"), dcfg, st, obs,
                             goal, acts)
     assert not np.allclose(member, ref)  # the modes differ, so the comparison above can fail
+
+
+def _small_td3(output_normalisation, seed=5, hidden=(32, 48)):
+    """A small TD3 actor + twin critic on the 29-d state; 48 = 3 blocks of 16 (not a power of 2)."""
+    tcfg = TD3Config.model_based(hidden=hidden, output_normalisation=output_normalisation)
+    st = td3_init(jax.random.key(seed), 29, 2, 8, tcfg)
+    # Scale the critic's output layer so V spreads over a few units, as a trained critic's does.
+    cp = jax.tree.map(lambda x: x, st.critic_params)
+    cp["params"]["heads"]["out"]["kernel"] = cp["params"]["heads"]["out"]["kernel"] * 20.0
+    return tcfg, st.replace(critic_params=cp)
+
+
+@pytest.mark.parametrize("output_normalisation", [False, True])
+def test_value_net_fn_is_td3_value(output_normalisation):
+    tcfg, st = _small_td3(output_normalisation)
+    s = jax.random.normal(jax.random.key(1), (50, 29))
+    g = jnp.asarray([0.3, -0.2], jnp.float32)
+    got = value_net_fn(td3_value_net(tcfg, st))(s, g)
+    np.testing.assert_allclose(got, td3_value(tcfg, st, s, jnp.broadcast_to(g, (50, 2))), rtol=1e-6, atol=1e-6)
+
+
+def test_fused_value_interpreted_matches_td3_value_and_numpy():
+    """The kernel's in-chip value (actor + twin critic on the final states) equals td3_value on the
+    kernel's own final states, and its eq. 2 costs equal the XLA path and the NumPy reference."""
+    dcfg, st = _tiny_model(E=1, obs_dim=29, act_dim=8)
+    tcfg, ts = _small_td3(output_normalisation=False)
+    net = td3_value_net(tcfg, ts)
+    cfg = MPCConfig(num_samples=64, horizon=2, block_rows=32, hidden_chunk=16, out_chunk=16, value_chunk=16,
+                    value_dtype="float32")
+    obs = np.random.default_rng(1).normal(size=(2, 29)).astype(np.float32)
+    acts = sample_action_sequences(jax.random.key(0), cfg, 2, 8)
+    xy, final_xla = rollout_xy(dataclasses.replace(cfg, backend="xla"), dcfg, st, obs, acts)
+    goal = np.asarray(xy[:, 0, -1]) + np.array([0.6, 0.0], np.float32)  # about half end within tolerance
+
+    # Kernel outputs directly: value, at-goal flag against td3_value on the final states.
+    fd = dynamics_fold(dcfg, st, jnp.bfloat16)
+    acts_k = mpc_lib._to_kernel_layout(cfg, acts, 16, 64)
+    fused = mpc_lib._rollout_pallas(cfg, dcfg, fd, jnp.asarray(obs), jnp.asarray(goal), acts_k, interpret=True,
+                                    value_net=net, want_final=False)
+    plain = mpc_lib._rollout_pallas(cfg, dcfg, fd, jnp.asarray(obs), jnp.asarray(goal), acts_k, interpret=True)
+    final = plain["final"][:, :, :29]
+    v_ref = jax.vmap(lambda s, g: td3_value(tcfg, ts, s, jnp.broadcast_to(g, (64, 2))))(final, jnp.asarray(goal))
+    assert float(jnp.std(v_ref)) > 0.1
+    np.testing.assert_allclose(fused["value"], v_ref, rtol=1e-5, atol=1e-5)
+    at_goal = np.linalg.norm(np.asarray(final[..., :2]) - goal[:, None], axis=-1) <= TOL
+    assert 0 < at_goal.sum() < at_goal.size
+    np.testing.assert_array_equal(fused["at_goal"], at_goal)
+    np.testing.assert_allclose(fused["cost"], plain["cost"], atol=1e-6)
+
+    # Eq. 2 costs from the fused outputs = XLA (bf16 rollouts + td3_value) = NumPy eq. 2.
+    got = mpc_lib._terminal(cfg, fused["cost"], fused["at_goal"], fused["value"])
+    ref = sequence_costs(dataclasses.replace(cfg, backend="xla"), dcfg, st, obs, goal, acts, value_net_fn(net))
+    np.testing.assert_allclose(got, ref, rtol=1e-4, atol=1e-4)
+    for b in range(2):
+        v = np.asarray(td3_value(tcfg, ts, final_xla[b], jnp.broadcast_to(goal[b], (64, 2))))
+        np.testing.assert_allclose(got[b], _np_cost(np.asarray(xy[b]), goal[b], v), rtol=1e-4, atol=1e-4)
+
+
+def test_fused_value_bf16_and_output_normalisation_interpreted():
+    """bfloat16 value operands stay close to td3_value; the output-normalisation actor works in-kernel."""
+    dcfg, st = _tiny_model(E=1, obs_dim=29, act_dim=8)
+    tcfg, ts = _small_td3(output_normalisation=True)
+    net = td3_value_net(tcfg, ts)
+    cfg = MPCConfig(num_samples=64, horizon=2, block_rows=32, hidden_chunk=16, out_chunk=16, value_chunk=16)
+    assert cfg.value_dtype == "bfloat16" and cfg.fuse_value
+    obs = np.random.default_rng(2).normal(size=(1, 29)).astype(np.float32)
+    goal = obs[:, :2] + np.array([[0.3, 0.2]], np.float32)
+    acts = sample_action_sequences(jax.random.key(4), cfg, 1, 8)
+    ref = sequence_costs(dataclasses.replace(cfg, backend="xla"), dcfg, st, obs, goal, acts, value_net_fn(net))
+    got = sequence_costs(cfg, dcfg, st, obs, goal, acts, interpret=True, value_net=net)
+    assert float(jnp.std(ref)) > 0.1
+    np.testing.assert_allclose(got, ref, atol=0.02 * float(jnp.max(jnp.abs(ref))))
+    assert float(jnp.max(jnp.abs(got - ref))) > 0  # the bf16 kernel value was used, not the XLA one
+
+
+def test_in_kernel_sampler_interpreted():
+    """The kernel's own draws equal _kernel_rng_actions (so the chosen first action is recovered
+    exactly), and they look uniform on [-1, 1) with independent lanes, rows and steps."""
+    dcfg, st = _tiny_model(E=1, obs_dim=29, act_dim=8)
+    cfg = MPCConfig(num_samples=32, horizon=2, block_rows=16, hidden_chunk=16, out_chunk=16, use_value=False)
+    obs = jnp.asarray(np.random.default_rng(3).normal(size=(2, 29)).astype(np.float32))
+    goal = obs[:, :2] + 0.4
+    seeds = mpc_lib._rng_seeds(jax.random.key(3), 2)
+    fd = dynamics_fold(dcfg, st, jnp.bfloat16)
+    acts = mpc_lib._kernel_rng_actions(seeds, 2, 32, 16, 8)
+    drawn = mpc_lib._rollout_pallas(cfg, dcfg, fd, obs, goal, seeds, interpret=True, want_final=False)
+    given = mpc_lib._rollout_pallas(cfg, dcfg, fd, obs, goal, acts, interpret=True, want_final=False)
+    np.testing.assert_array_equal(drawn["cost"], given["cost"])
+    rows = jnp.asarray([[5], [20]])
+    np.testing.assert_array_equal(mpc_lib._kernel_rng_actions(seeds, 2, 32, 16, 8, t=0, rows=rows)[:, 0],
+                                  acts[jnp.arange(2), 0, rows[:, 0], :8])
+    assert not np.any(np.asarray(acts[..., 8:], np.float32))  # padding lanes are zero
+    x = np.asarray(mpc_lib._kernel_rng_actions(mpc_lib._rng_seeds(jax.random.key(0), 4), 3, 4096, 16, 8),
+                   np.float32)[..., :8]
+    assert x.min() >= -1.0 and x.max() <= 1.0
+    assert abs(x.mean()) < 0.01 and abs(x.var() - 1 / 3) < 0.01
+    flat = x.reshape(-1, 8)
+    assert np.abs(np.corrcoef(flat.T) - np.eye(8)).max() < 0.01  # lanes
+    assert abs(np.corrcoef(x[:, :, :-1, 0].ravel(), x[:, :, 1:, 0].ravel())[0, 1]) < 0.01  # rows
+    assert abs(np.corrcoef(x[:, 0].ravel(), x[:, 1].ravel())[0, 1]) < 0.01  # steps
+    assert abs(np.corrcoef(x[0].ravel(), x[1].ravel())[0, 1]) < 0.01  # environments
