@@ -78,8 +78,23 @@ def _value_fn(td3_cfg, td3_state):
 
 
 def _mpc_variant(name):
-    """name -> (MPCConfig, matmul precision or None). Suffix "_vbf16": value net in bf16 passes."""
+    """name -> (MPCConfig, matmul precision or None).
+
+    Suffixes: "_krng" / "_jrng" action sequences drawn inside the kernel / by jax.random; "_vbf16" value_fn matmuls in single bf16 passes (XLA value); "_xv" value through XLA
+    after the kernel (value_fn, as before the fused value); "_fv32" fused value with float32 (TF32)
+    operands; "_mean" ensemble mean. Pallas names: pallas_BM<rows>_W<warps>_S<stages>_C<hidden
+    block>_N<out block>_VC<value block>; "pallas" alone is the library default tiling.
+    """
     from dscpp_jax.mpc import MPCConfig
+    if name.endswith("_krng") or name.endswith("_jrng"):  # sequences drawn in the kernel / by jax.random
+        cfg, prec = _mpc_variant(name[:-len("_krng")])
+        return dataclasses.replace(cfg, kernel_rng=name.endswith("_krng")), prec
+    if name.endswith("_xv"):
+        cfg, prec = _mpc_variant(name[:-len("_xv")])
+        return dataclasses.replace(cfg, fuse_value=False), prec
+    if name.endswith("_fv32"):
+        cfg, prec = _mpc_variant(name[:-len("_fv32")])
+        return dataclasses.replace(cfg, value_dtype="float32"), prec
     if name.endswith("_vbf16"):
         cfg, prec = _mpc_variant(name[:-len("_vbf16")])
         return dataclasses.replace(cfg, value_precision="bfloat16"), prec
@@ -96,7 +111,9 @@ def _mpc_variant(name):
     if name.startswith("pallas"):  # pallas_BM<rows>_W<warps>_S<stages>_C<chunk>
         kw = {}
         for p in name.split("_")[1:]:
-            if p.startswith("BM"):
+            if p.startswith("VC"):
+                kw["value_chunk"] = int(p[2:])
+            elif p.startswith("BM"):
                 kw["block_rows"] = int(p[2:])
             elif p.startswith("W"):
                 kw["num_warps"] = int(p[1:])
@@ -115,7 +132,7 @@ def bench_mpc(variants, env_sizes, num_samples, horizon, use_values=(True,), obs
     import jax
     import jax.numpy as jnp
     from dscpp_jax.dynamics import DynamicsConfig, dynamics_fit_normaliser, dynamics_init
-    from dscpp_jax.mpc import mpc_actions, mpc_flops_per_decision
+    from dscpp_jax.mpc import mpc_actions, mpc_flops_per_decision, td3_value_net
     from dscpp_jax.td3 import TD3Config, td3_init
 
     key = jax.random.key(0)
@@ -128,6 +145,7 @@ def bench_mpc(variants, env_sizes, num_samples, horizon, use_values=(True,), obs
     tcfg = TD3Config.model_based()
     tst = td3_init(jax.random.key(1), obs_dim, 2, act_dim, tcfg)
     vf = _value_fn(tcfg, tst)
+    vnet = td3_value_net(tcfg, tst)
     rows = []
     for name in variants:
         for use_value in use_values:
@@ -139,7 +157,9 @@ def bench_mpc(variants, env_sizes, num_samples, horizon, use_values=(True,), obs
                     flops *= ensemble_size
 
                 def decide(s, k, obs, goal, cfg=cfg):
-                    return mpc_actions(cfg, dcfg, s, k, obs, goal, vf if cfg.use_value else None)
+                    if not cfg.use_value:
+                        return mpc_actions(cfg, dcfg, s, k, obs, goal)
+                    return mpc_actions(cfg, dcfg, s, k, obs, goal, vf, value_net=vnet)
 
                 f = jax.jit(decide)
                 args = []
@@ -148,7 +168,10 @@ def bench_mpc(variants, env_sizes, num_samples, horizon, use_values=(True,), obs
                     goal = obs[:, :2] + jnp.asarray(rng.normal(size=(B, 2)).astype(np.float32))
                     args.append((st, jax.random.key(10 + i), obs, goal))
                 row = {"variant": name, "envs": B, "use_value": use_value, "num_samples": num_samples,
-                       "horizon": horizon, "ensemble_size": ensemble_size, "precision": prec or "default"}
+                       "horizon": horizon, "ensemble_size": ensemble_size, "precision": prec or "default",
+                       "value_path": (("fused_" + cfg.value_dtype if cfg.fuse_value else "xla")
+                                      if use_value and cfg.backend == "pallas" else
+                                      ("xla" if use_value else "none"))}
                 try:
                     t0 = time.perf_counter()
                     ctx = jax.default_matmul_precision(prec) if prec else _null()
@@ -374,6 +397,139 @@ def quality(data_path, out_npz, num_samples, horizon, n_starts, train_steps, ens
             "v_scale": QUALITY_V_SCALE}
 
 
+def _fit_td3_value(obs_train, obs_test, steps, batch=1024, goal_radius=3.0, seed=0, log=print):
+    """A TD3 actor + twin critic (model-based preset, 2 x 256) whose min(Q1, Q2)(s, g, pi(s, g)) is
+    regressed onto the synthetic distance value, so the terminal value is a real critic network with
+    a known meaning. Returns (TD3Config, TD3State, held-out RMSE of V)."""
+    import jax
+    import jax.numpy as jnp
+    import optax
+    from dscpp_jax.networks import TwinCritic
+    from dscpp_jax.td3 import TD3Config, td3_init, td3_value
+
+    tcfg = TD3Config.model_based()
+    st = td3_init(jax.random.key(seed), obs_train.shape[1], 2, 8, tcfg)
+    critic = TwinCritic(hidden=tcfg.hidden)
+    tx = optax.adam(1e-3)
+    xs = jnp.asarray(obs_train)
+
+    def sample(key, n, pool):
+        k1, k2, k3, k4 = jax.random.split(key, 4)
+        s = pool[jax.random.randint(k1, (n,), 0, pool.shape[0])]
+        ang = jax.random.uniform(k2, (n,), maxval=2 * np.pi)
+        r = goal_radius * jnp.sqrt(jax.random.uniform(k3, (n,)))
+        g = s[:, :2] + r[:, None] * jnp.stack([jnp.cos(ang), jnp.sin(ang)], -1)
+        a = jax.random.uniform(k4, (n, 8), minval=-1, maxval=1)
+        return s, g, a, _synthetic_value(s, g)
+
+    def loss_fn(params, s, g, a, y):
+        return jnp.mean(jnp.square(critic.apply(params, s, g, a) - y[None]))
+
+    @jax.jit
+    def train(params, key):
+        def body(carry, k):
+            params, opt = carry
+            s, g, a, y = sample(k, batch, xs)
+            l, grad = jax.value_and_grad(loss_fn)(params, s, g, a, y)
+            upd, opt = tx.update(grad, opt, params)
+            return (optax.apply_updates(params, upd), opt), l
+        (params, _), ls = jax.lax.scan(body, (params, tx.init(params)), jax.random.split(key, steps))
+        return params, ls
+
+    t0 = time.perf_counter()
+    params, ls = train(st.critic_params, jax.random.key(seed + 1))
+    st = st.replace(critic_params=params, target_critic_params=params)
+    s, g, _, y = sample(jax.random.key(seed + 2), 8192, jnp.asarray(obs_test))
+    v = td3_value(tcfg, st, s, g)
+    rmse = float(jnp.sqrt(jnp.mean(jnp.square(v - y))))
+    log(f"  fitted TD3 critic to the synthetic value: {steps} steps in {time.perf_counter() - t0:.1f} s, "
+        f"final loss {float(ls[-1]):.3f}, held-out V RMSE {rmse:.3f} (V std {float(jnp.std(y)):.2f})")
+    return tcfg, st, rmse
+
+
+def value_quality(data_path, out_npz, num_samples, horizon, n_starts, train_steps, critic_steps,
+                  pallas_variant="pallas", log=print):
+    """Terminal value in the fused kernel vs through XLA, with a real TD3 critic network.
+
+    One E = 1 dynamics model (as in `quality`), a TD3 actor + twin critic fitted to the synthetic
+    distance value, and the same candidate sequences scored by: XLA float32 (highest precision,
+    rollouts and value: the reference), the fused kernel with the value through XLA after the kernel
+    (default precision; the path before the value was fused), and the value fused into the kernel
+    with bfloat16 or float32 (TF32) operands. Chosen sequences are saved for the MuJoCo replay.
+    """
+    import jax
+    import jax.numpy as jnp
+    from dscpp_jax.dynamics import DynamicsConfig, dynamics_fit_normaliser, dynamics_init, dynamics_train
+    from dscpp_jax.mpc import MPCConfig, sequence_costs, sample_action_sequences, td3_value_net, value_net_fn
+
+    d = np.load(data_path)
+    obs, act, nxt = d["obs"], d["act"], d["next_obs"]
+    ntr = int(0.9 * obs.shape[0])
+    tr = (obs[:ntr], act[:ntr], nxt[:ntr])
+    dcfg = DynamicsConfig(ensemble_size=1)
+    st = dynamics_fit_normaliser(dynamics_init(jax.random.key(1), 29, 8, dcfg), *tr, None, dcfg)
+    st, _ = jax.jit(lambda s, b, k: dynamics_train(dcfg, s, b, k, train_steps))(st, tr, jax.random.key(0))
+    tcfg, tst, rmse = _fit_td3_value(obs[:ntr], obs[ntr:], critic_steps, log=log)
+    net = td3_value_net(tcfg, tst)
+    vf = value_net_fn(net)
+
+    rng = np.random.default_rng(1)  # the same starts and goals as `quality`
+    te0 = obs[ntr:]
+    starts = rng.choice(te0.shape[0], n_starts, replace=False)
+    s0 = te0[starts]
+    ang = rng.uniform(0, 2 * np.pi, n_starts)
+    goal = (s0[:, :2] + np.stack([np.cos(ang), np.sin(ang)], -1) * rng.uniform(0.8, 1.6, (n_starts, 1))).astype(np.float32)
+    base = MPCConfig(num_samples=num_samples, horizon=horizon, use_value=True)
+    pcfg, _ = _mpc_variant(pallas_variant)
+    pk = {f.name: getattr(pcfg, f.name) for f in dataclasses.fields(pcfg)
+          if f.name in ("backend", "compute_dtype", "block_rows", "num_warps", "num_stages", "hidden_chunk",
+                        "out_chunk", "value_chunk")}
+    acts = sample_action_sequences(jax.random.key(123), base, n_starts, 8)
+    variants = {
+        "tdv_f32_highest": (dict(backend="xla", compute_dtype="float32"), "highest", vf, None),
+        "tdv_pallas_xla_value": (dict(pk, fuse_value=False), None, vf, None),
+        "tdv_pallas_fused_bf16": (dict(pk, value_dtype="bfloat16"), None, None, net),
+        "tdv_pallas_fused_f32": (dict(pk, value_dtype="float32"), None, None, net),
+    }
+    costs = {}
+    for name, (kw, prec, fn, vn) in variants.items():
+        cfg = dataclasses.replace(base, **kw)
+        f = jax.jit(lambda s, a, cfg=cfg, fn=fn, vn=vn: sequence_costs(cfg, dcfg, s, jnp.asarray(s0), jnp.asarray(goal),
+                                                                      a, fn, value_net=vn))
+        try:
+            ctx = jax.default_matmul_precision(prec) if prec else _null()
+            with ctx:
+                costs[name] = np.asarray(f(st, acts))
+        except Exception as e:  # noqa: BLE001
+            log(f"  {name}: ERROR {type(e).__name__}: {str(e)[:300]}")
+    acts_np = np.asarray(acts)
+    summary = {}
+    ar = np.arange(n_starts)
+    for ref_name in ("tdv_f32_highest", "tdv_pallas_xla_value"):
+        ref = costs.get(ref_name)
+        if ref is None:
+            continue
+        ridx = ref.argmin(1)
+        spread = np.median(ref, 1) - ref[ar, ridx]
+        for name, c in costs.items():
+            idx = c.argmin(1)
+            regret = ref[ar, idx] - ref[ar, ridx]
+            rank = (ref < ref[ar, idx][:, None]).sum(1)
+            summary.setdefault(name, {"chosen_pred_cost_mean": float(c[ar, idx].mean())})[f"vs_{ref_name}"] = dict(
+                argmin_agreement=float((idx == ridx).mean()), regret_mean=float(regret.mean()),
+                regret_over_median_gap=float((regret / np.maximum(spread, 1e-9)).mean()),
+                rank_mean=float(rank.mean()), rank_max=int(rank.max()),
+                max_abs_cost_diff=float(np.abs(c - ref).max()),
+                mean_abs_cost_diff=float(np.abs(c - ref).mean()))
+    for name, sm in summary.items():
+        log(f"  value quality {name:<24} {sm}")
+    np.savez_compressed(out_npz, s0=s0, goal=goal, random_seq=acts_np[:, 0],
+                        **{f"seq_{k}": acts_np[ar, c.argmin(1)] for k, c in costs.items()})
+    return {"variants": summary, "critic_value_rmse": rmse, "critic_steps": critic_steps, "num_samples": num_samples,
+            "horizon": horizon, "n_starts": n_starts, "train_steps": train_steps, "kernel": pk,
+            "v_scale": QUALITY_V_SCALE}
+
+
 def replay_quality(npz_path, data_path, gamma=0.95, tol=0.6):
     """True eq. 2 cost (same synthetic V at the true final state) of each variant's chosen sequences."""
     import mujoco
@@ -406,7 +562,7 @@ def replay_quality(npz_path, data_path, gamma=0.95, tol=0.6):
             costs.append(c), dists.append(dj)
         key = name.replace("seq_", "")
         per_start[key] = (np.asarray(costs), np.asarray(dists))
-    ref = "E1_f32_highest" if "E1_f32_highest" in per_start else names[0]
+    ref = next((r for r in ("E1_f32_highest", "tdv_f32_highest") if r in per_start), "random_seq")
     rc, rd = per_start[ref]
     n = len(rc)
     for key, (costs, dists) in per_start.items():
@@ -437,6 +593,11 @@ def main(argv=None):
     p.add_argument("--tune", default=None, help="comma-separated pallas variants to try at --tune-envs first; "
                    "the fastest joins --variants")
     p.add_argument("--tune-envs", type=int, default=128)
+    p.add_argument("--tune-value", action="store_true", help="tune with the terminal value (fused) instead of without")
+    p.add_argument("--tune-more", default=None, help="comma-separated name parts appended to the fastest tuned "
+                   "kernel and timed in a second round (e.g. VC32,VC128); the fastest of both rounds wins")
+    p.add_argument("--tune-extra", default="_xv,_fv32", help="suffixes of the tuned kernel also timed in the main "
+                   "table (default: value through XLA, fused value in float32)")
     p.add_argument("--no-value-envs", default=None, help="env counts also measured without the value term")
     p.add_argument("--ensemble", type=int, default=1)
     p.add_argument("--ensemble-extra", default=None, metavar="E:ENVS",
@@ -446,6 +607,11 @@ def main(argv=None):
     p.add_argument("--quality-out", default=None, help="npz of chosen sequences (default next to --out)")
     p.add_argument("--quality-starts", type=int, default=512)
     p.add_argument("--quality-train-steps", type=int, default=3000)
+    p.add_argument("--value-quality", action="store_true", help="with --quality DATA: fused vs XLA terminal "
+                   "value with a TD3 critic fitted to the synthetic value (chosen sequences saved for the replay)")
+    p.add_argument("--critic-steps", type=int, default=4000)
+    p.add_argument("--skip-quality-study", action="store_true", help="with --value-quality: skip the "
+                   "bf16/ensemble study")
     p.add_argument("--make-ant-data", default=None, metavar="PATH")
     p.add_argument("--replay-quality", default=None, metavar="NPZ", help="with --quality DATA: true replay")
     args = p.parse_args(argv)
@@ -506,18 +672,24 @@ def main(argv=None):
         save()
 
     if "mpc" not in skip and args.tune:
-        print(f"MPC kernel tuning at {args.tune_envs} envs (M={M}, K={K}, no value):")
-        tune_rows = bench_mpc(args.tune.split(","), [args.tune_envs], M, K, use_values=(False,),
+        print(f"MPC kernel tuning at {args.tune_envs} envs (M={M}, K={K}, "
+              f"{'with the fused value' if args.tune_value else 'no value'}):")
+        tune_rows = bench_mpc(args.tune.split(","), [args.tune_envs], M, K, use_values=(bool(args.tune_value),),
                               ensemble_size=args.ensemble, reps=3, on_row=lambda r: add_row(r, "mpc_tuning"))
         ok = [r for r in tune_rows if "error" not in r]
+        if ok and args.tune_more:
+            first = max(ok, key=lambda r: r["decisions_per_s"])["variant"]
+            ok += [r for r in bench_mpc([f"{first}_{x}" for x in args.tune_more.split(",")], [args.tune_envs], M, K,
+                                        use_values=(bool(args.tune_value),), ensemble_size=args.ensemble, reps=3,
+                                        on_row=lambda r: add_row(r, "mpc_tuning")) if "error" not in r]
         if ok:
             best = max(ok, key=lambda r: r["decisions_per_s"])["variant"]
             res["mpc_best_kernel"] = best
-            for v in (best, best + "_vbf16"):
+            for v in [best] + [best + x for x in args.tune_extra.split(",") if x]:
                 if v not in variants:
                     variants.append(v)
         save()
-    if args.quality:
+    if args.quality and not args.skip_quality_study:
         print("MPC action quality (same candidate sequences, synthetic distance value):")
         qout = args.quality_out or os.path.splitext(out)[0] + "_quality.npz"
         res["quality"] = quality(args.quality, qout, M, K, args.quality_starts,
@@ -530,13 +702,23 @@ def main(argv=None):
         if args.no_value_envs:
             nv = [int(x) for x in args.no_value_envs.split(",")]
             print("MPC without the value term (flat finite horizon):")
-            bench_mpc(variants, nv, M, K, use_values=(False,), ensemble_size=args.ensemble, on_row=add_row)
+            value_only = ("_xv", "_fv32", "_vbf16")  # suffixes that change only the value term
+            bench_mpc([v for v in variants if not v.endswith(value_only)], nv, M, K, use_values=(False,),
+                      ensemble_size=args.ensemble, on_row=add_row)
         if args.ensemble_extra and "mpc_best_kernel" in res:
             E2, envs2 = (int(x) for x in args.ensemble_extra.split(":"))
             best = res["mpc_best_kernel"]
             print(f"MPC with an ensemble of {E2} (fused kernel, one member per sequence vs mean of members):")
             bench_mpc([best, best + "_mean"], [envs2], M, K, use_values=(True,), ensemble_size=E2, on_row=add_row)
 
+    if args.quality and args.value_quality:
+        print("MPC terminal value fused vs XLA (same candidate sequences, TD3 critic fitted to the synthetic value):")
+        qout = os.path.splitext(out)[0] + "_value_quality.npz"
+        res["value_quality"] = value_quality(args.quality, qout, M, K, args.quality_starts,
+                                             200 if small else args.quality_train_steps,
+                                             100 if small else args.critic_steps,
+                                             pallas_variant=res.get("mpc_best_kernel", "pallas"))
+        save()
     print(f"\nwrote {out}")
     print("\n| section | variant | envs | value | rate | TFLOP/s |\n|---|---|---|---|---|---|")
     for r in res.get("mpc", []):
