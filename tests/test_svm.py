@@ -258,3 +258,88 @@ def test_bad_arguments_raise():
     mo = svm.fit_one_class(X, m, nu=0.5, gamma=GAMMA)
     with pytest.raises(ValueError, match="features"):
         svm.decision_function(mo, np.zeros((3, 3), np.float32))
+
+
+# --------------------------------------------------------------------------------------------
+# The fused Pallas kernel (interpret mode on a CPU): the XLA loop's path, the same decisions
+
+# Small chunks so that the small fixtures take both of the kernel's paths: swept in chunks of 128
+# points (3 chunks for 258 points), or kept in registers (up to 512 points, 8 steps per block).
+SWEPT = svm.Solver(backend="pallas", chunk=128, resident=0)
+RESIDENT = svm.Solver(backend="pallas", chunk=128, resident=512, steps=8)
+
+
+def assert_same_fit(a, b, g):
+    """The same problem solved by both backends: the same steps and model up to float rounding
+    (the interpreted kernel matches the XLA loop bit for bit on XLA:CPU; GPUs round exp
+    differently, which can reorder near-ties late in the run)."""
+    assert abs(int(a.n_iter) - int(b.n_iter)) <= 0.1 * int(b.n_iter) + 3
+    assert bool(a.converged) and bool(b.converged)
+    fa, fb = (np.asarray(svm.decision_function(m, g)) for m in (a, b))
+    scale = max(1.0, float(np.abs(fb).max()))
+    assert np.max(np.abs(fa - fb)) <= 5e-3 * scale
+    assert abs(float(a.rho) - float(b.rho)) <= 5e-3 * scale
+    sure = np.abs(fb) > 1e-2 * scale
+    assert np.all((fa > 0)[sure] == (fb > 0)[sure])
+
+
+@pytest.mark.parametrize("solver", [SWEPT, RESIDENT], ids=["swept", "resident"])
+def test_pallas_kernel_matches_xla_loop_and_sklearn(solver):
+    X, lab, cw = svc_case((5, 3))  # 258 points scattered over 512 slots
+    g = grid(X, 100)
+    Xp, lp, m = padded(X, 512, lab, scatter_seed=2)
+    pal = svm.fit_svc(Xp, lp, m, gamma=GAMMA, class_weight=cw, _inner=solver)
+    assert_same_fit(pal, svm.fit_svc(Xp, lp, m, gamma=GAMMA, class_weight=cw, backend="xla"), g)
+    sk = sklearn_svm.SVC(kernel="rbf", gamma=GAMMA, C=1.0, class_weight=cw).fit(X, lab)
+    f_sk, f = sk.decision_function(g), np.asarray(svm.decision_function(pal, g))
+    sure = np.abs(f_sk) > 1e-2
+    assert np.all((f >= 0)[sure] == (f_sk >= 0)[sure]) and np.max(np.abs(f - f_sk)) <= 2e-2
+    assert abs(float(pal.rho) - (-sk.intercept_[0])) <= 5e-3
+    assert np.all(np.asarray(pal.coef)[~m] == 0)
+
+    Xp, m = padded(X[lab == 1], 512, scatter_seed=3)
+    pal = svm.fit_one_class(Xp, m, nu=0.1, gamma=GAMMA, _inner=solver)
+    assert_same_fit(pal, svm.fit_one_class(Xp, m, nu=0.1, gamma=GAMMA, backend="xla"), g)
+    sk = sklearn_svm.OneClassSVM(kernel="rbf", gamma=GAMMA, nu=0.1).fit(X[lab == 1])
+    assert abs(float(pal.rho) - sk.offset_[0]) / abs(sk.offset_[0]) <= 1e-3
+    f_sk, f = sk.decision_function(g), np.asarray(svm.decision_function(pal, g))
+    sure = np.abs(f_sk) > 1e-2 * np.abs(f_sk).max()
+    assert np.all((f > 0)[sure] == (f_sk > 0)[sure])
+    assert abs(float(np.sum(pal.coef)) - 0.1 * int(m.sum())) <= 1e-3 * max(1.0, 0.1 * int(m.sum()))
+
+
+def test_pallas_kernel_vmapped_batch_matches_xla_loop():
+    """One kernel program per problem: sizes on both sides of the register limit (one problem
+    in registers, one swept), finishing at different steps."""
+    data = [svc_case(nm) for nm in [(2, 3), (4, 12)]]  # 105 and 216 points
+    Xs, Ls, Ms = map(np.stack, zip(*[padded(X, 256, lab, scatter_seed=i) for i, (X, lab, _) in enumerate(data)]))
+    bal = np.array([cw is not None for _, _, cw in data])
+
+    def fit(sv):
+        return jax.vmap(lambda x, l, m, b: svm.fit_svc(x, l, m, gamma=GAMMA, class_weight=b, _inner=sv))(Xs, Ls, Ms, bal)
+
+    got = fit(svm.Solver(backend="pallas", chunk=64, resident=128, steps=4, variadic=True))
+    want = fit(svm._resolve_inner(None, "xla"))
+    assert len(set(np.asarray(got.n_iter).tolist())) > 1
+    for k, (X, _, _) in enumerate(data):
+        assert_same_fit(*(jax.tree.map(lambda a: a[k], mo) for mo in (got, want)), grid(X, 60))
+
+
+def test_pallas_backend_edge_cases_and_arguments():
+    X = np.random.default_rng(1).normal(size=(128, 2)).astype(np.float32)
+    q = np.random.default_rng(2).normal(size=(50, 2)).astype(np.float32) * 3
+    m = np.arange(128) < 40
+    lab = (X[:, 0] > 0).astype(np.int32)
+    only_pos = svm.fit_svc(X, np.ones(128, np.int32), m, gamma=GAMMA, max_iter=3, _inner=RESIDENT)
+    np.testing.assert_allclose(svm.decision_function(only_pos, q), 1.0)
+    empty = svm.fit_one_class(X, np.zeros(128, bool), nu=0.1, gamma=GAMMA, backend="pallas")
+    assert int(empty.n_iter) == 0 and not np.asarray(svm.predict(empty, q)).any()
+    for sv in (SWEPT, RESIDENT):  # the cap stops mid-block in registers too
+        capped = svm.fit_svc(X, lab, m, gamma=GAMMA, max_iter=3, _inner=sv)
+        assert int(capped.n_iter) == 3 and not bool(capped.converged) and float(capped.gap) >= 1e-3
+    with pytest.raises(ValueError, match="backend"):
+        svm.fit_svc(X, lab, m, gamma=GAMMA, backend="cuda")
+    with pytest.raises(ValueError, match="chunk"):
+        svm.fit_one_class(X, m, nu=0.1, gamma=GAMMA, _inner=SWEPT._replace(chunk=100))
+    with pytest.raises(ValueError, match="resident"):
+        svm.fit_one_class(X, m, nu=0.1, gamma=GAMMA, _inner=SWEPT._replace(resident=1000))
