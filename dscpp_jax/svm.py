@@ -63,8 +63,8 @@ AUTO_BACKEND = {"gpu": "pallas", "default": "xla"}
 BACKENDS = ("auto", "xla", "pallas")
 # Pallas kernel: points per chunk of the per-step sweeps (a power of two), warps per problem, and
 # the largest problem kept in registers. Measured on an H200 (16 DSC-like options, 1,000 / 2,000 /
-# 5,000 points each): 2048 / 8 / 1024 is within 0.5 ms of the fastest setting at 1,000 points and
-# the fastest or close to it at 2,000 and 5,000 (experiments/results/bench_options.md).
+# 5,000 points each): 2048 / 8 / 1024 is within 0.2 ms of the fastest setting tried at 1,000
+# points and within 0.9 ms at 2,000 and 5,000 (experiments/results/bench_options.md).
 PALLAS_CHUNK = 2048
 PALLAS_WARPS = 8
 PALLAS_RESIDENT = 1024

@@ -233,6 +233,34 @@ def bench_dp(n_options, n_states, reps):
         return {"error": f"{type(e).__name__}: {e}"}
 
 
+def parse_solver(spec: str) -> svm.Solver:
+    """'default', xla:STEPS:ARGMAX (or STEPS:ARGMAX) or pallas:CHUNK:WARPS:ARGMAX[:STEPS[:RESIDENT]]."""
+    if spec == "default":
+        return svm._resolve_inner(None)
+    parts = spec.split(":")
+    if parts[0] == "pallas" and 4 <= len(parts) <= 6:
+        sv = svm.Solver(backend="pallas", chunk=int(parts[1]), warps=int(parts[2]), variadic=parts[3] == "v",
+                        steps=svm._resolve_inner(None).steps)
+        if len(parts) > 4:
+            sv = sv._replace(steps=int(parts[4]))
+        if len(parts) > 5:
+            sv = sv._replace(resident=int(parts[5]))
+        return svm._resolve_inner(sv)
+    if parts[0] == "xla":
+        parts = parts[1:]
+    if len(parts) != 2:
+        raise ValueError(f"bad --solver spec {spec!r}")
+    return svm._resolve_inner(svm.Solver(steps=int(parts[0]), variadic=parts[1] == "v", backend="xla"))
+
+
+def solver_name(sv: svm.Solver) -> str:
+    argmax = "variadic" if sv.variadic else "two-pass"
+    if sv.backend == "pallas":
+        return (f"pallas,chunk={sv.chunk},warps={sv.warps},resident={sv.resident},steps={sv.steps},"
+                f"{argmax}-argmax")
+    return f"xla,steps={sv.steps},{argmax}-argmax"
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--sizes", type=int, nargs="+", default=[1000, 5000], help="points per option")
@@ -240,8 +268,10 @@ def main(argv=None):
     ap.add_argument("--reps", type=int, default=10, help="timed JAX repetitions (after a warm-up)")
     ap.add_argument("--sk-reps", type=int, default=3, help="timed scikit-learn repetitions")
     ap.add_argument("--solver", nargs="+", default=["default"],
-                    help="SMO settings to compare: 'default' (the backend's) or STEPS:ARGMAX, e.g. 8:v "
-                         "(8 steps per convergence check, variadic argmax) or 1:t (two-pass argmax)")
+                    help="SMO settings to compare: 'default' (the platform's), xla:STEPS:ARGMAX (XLA loop, "
+                         "e.g. xla:8:v = 8 steps per convergence check, variadic argmax; t = two-pass "
+                         "argmax; STEPS:ARGMAX alone means the same) or pallas:CHUNK:WARPS:ARGMAX[:STEPS[:RESIDENT]] "
+                         "(the fused kernel, e.g. pallas:1024:4:v:8:1024; RESIDENT 0 = never in registers)")
     ap.add_argument("--dp-states", type=int, default=100)
     ap.add_argument("--no-dp", action="store_true")
     ap.add_argument("--seed", type=int, default=0)
@@ -263,6 +293,7 @@ def main(argv=None):
         "sklearn_threads": "main thread pinned to one core (libsvm is single-threaded)",
         "slots_per_option": POS_SLOTS + NEG_SLOTS,
         "batch_mode": ini.BATCH_MODE.get(jax.default_backend(), ini.BATCH_MODE["default"]),
+        "default_solver": svm._resolve_inner(None)._asdict(),
         "time": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
     }
     try:
@@ -272,13 +303,7 @@ def main(argv=None):
         pass
     print(f"device {meta['device']}  jax {jax.__version__}  sklearn {sklearn.__version__}  cpu {meta['cpu']}")
 
-    solvers = []
-    for spec in args.solver:
-        if spec == "default":
-            solvers.append(svm._resolve_inner(None))
-        else:
-            steps, mode = spec.split(":")
-            solvers.append(svm._resolve_inner((int(steps), mode == "v")))
+    solvers = [parse_solver(spec) for spec in args.solver]
     solvers = list(dict.fromkeys(solvers))
     cfg = ini.InitiationConfig()
     pipes = {sv: jax.jit(lambda a, b, c, d, sv=sv: ini.fit_initiation_batch(a, b, c, d, cfg, _inner=sv))
@@ -311,10 +336,10 @@ def main(argv=None):
         sk_cache = {}
         best = None
         for n_sv, sv in enumerate(solvers):
-            name = f"steps={sv[0]},{'variadic' if sv[1] else 'two-pass'}-argmax"
+            name = solver_name(sv)
             pt, pc, clfs = time_jax(pipes[sv], jargs, args.reps)
             svcs = None
-            entry = {"solver": list(sv), "pipeline_s": pt, "pipeline_compile_s": pc,
+            entry = {"solver": sv._asdict(), "pipeline_s": pt, "pipeline_compile_s": pc,
                      "pipeline_median_ms": 1e3 * statistics.median(pt),
                      "speedup_pipeline": min(sk_pipe_t) / statistics.median(pt)}
             if n_sv == 0:
