@@ -16,8 +16,10 @@ Two interchangeable back ends compute the rollouts:
 - ``"xla"``: plain JAX; all environments' sequences form one (envs * M)-row matmul chain. float32 or
   bfloat16 operands (float32 accumulation, float32 state).
 - ``"pallas"``: one fused GPU kernel (Pallas/Triton) per (env, block of sequences) that keeps the
-  whole K-step rollout of a block on chip (bf16 operands, float32 accumulation and state): only the
-  actions go in and the discounted step costs come out. Given a ``value_net``, the same kernel also
+  whole K-step rollout of a block on chip (bf16 operands, float32 accumulation and state). In
+  ``mpc_actions`` the kernel also draws the action sequences itself from one seed per environment
+  (``kernel_rng``), so no action tensor goes through memory and the chosen first action is recomputed
+  from its index; the discounted step costs come out. Given a ``value_net``, the same kernel also
   runs the actor and both critic heads on each block's final states while they are on chip, so only
   V and an at-goal flag come out (``fuse_value``); with a ``value_fn`` the final states are written
   out and V is computed by XLA. ``"auto"`` picks this back end on a GPU for the paper's 2-hidden-layer
@@ -27,7 +29,8 @@ Ensemble members enter as the mean prediction of all members at each step (``ens
 the default: E times the work) or one member per sequence (``"member"``: sequence i is rolled out by
 member (i // block_rows) % E for all K steps, at the cost of a single model). Measured on the ant
 (experiments/results/mpc_evidence.md): the mean picks better sequences under the true dynamics, one
-member per sequence does not beat a single model, and bf16 operands pick as well as float32.
+member per sequence does not beat a single model, and bf16 operands pick as well as float32; the
+fused bf16 value net picks as well as the float32 XLA value (same file).
 """
 
 from __future__ import annotations
@@ -84,7 +87,9 @@ class MPCConfig:
     value_chunk: hidden block of the fused value net (power of 2 >= 16).
     kernel_rng: in mpc_actions with the fused kernel, draw the action sequences inside the kernel
         (a counter-based hash of one jax.random seed per environment; uniform in [-1, 1) like
-        jax.random.uniform) instead of writing them to memory first with jax.random.
+        jax.random.uniform) instead of writing them to memory first with jax.random (False).
+    join_input: feed state and action to the fused kernel's first layer as one interleaved operand
+        (one matmul per hidden block instead of two; same result; not yet timed on a GPU).
     """
 
     num_samples: int = 14000
@@ -104,7 +109,8 @@ class MPCConfig:
     fuse_value: bool = True
     value_dtype: str = "bfloat16"
     value_chunk: int = 128
-    kernel_rng: bool = False
+    kernel_rng: bool = True
+    join_input: bool = False
 
     def __post_init__(self):
         if self.num_samples < 1 or self.horizon < 1:
@@ -442,6 +448,12 @@ def _rollout_pallas(mpc_cfg: MPCConfig, dyn_cfg: DynamicsConfig, fd: FoldedDynam
         raise ValueError(f"kernel actions must be {(B, K, Mp, AP)}, got {acts_k.shape}")
 
     ws, wa, b1, w2, b2, w3, b3 = _kernel_weights(fd, SP, AP, HP)
+    join = mpc_cfg.join_input and AP <= SP
+    if join and not draw:  # explicit actions: widen to the state's lanes for the interleaved operand
+        acts_k = _pad_to(acts_k, (B, K, Mp, SP))
+    if join:  # rows 2j: state input j, rows 2j + 1: action input j (zero past the action size)
+        wa32 = _pad_to(wa, (E, SP, HP))
+        ws = jnp.stack([ws, wa32], axis=2).reshape(E, 2 * SP, HP)
     s0 = _pad_to(obs.astype(f32), (B, SP))
     g = _pad_to(goal.astype(f32), (B, SP))
 
@@ -522,13 +534,14 @@ def _rollout_pallas(mpc_cfg: MPCConfig, dyn_cfg: DynamicsConfig, fd: FoldedDynam
         lane = jax.lax.broadcasted_iota(jnp.int32, (1, SP), 1)
         xy_lane = lane < 2
         if draw:  # counters of this block's rows and action lanes at step 0
-            a_lane = jax.lax.broadcasted_iota(jnp.int32, (BM, AP), 1)
-            a_row = jax.lax.broadcasted_iota(jnp.int32, (BM, AP), 0) + pl.program_id(1) * BM
-            seed = jnp.broadcast_to(a_ref[...], (BM, AP))
+            AW = SP if join else AP  # lanes of the drawn tile (the counter keeps AP lanes per row)
+            a_lane = jax.lax.broadcasted_iota(jnp.int32, (BM, AW), 1)
+            a_row = jax.lax.broadcasted_iota(jnp.int32, (BM, AW), 0) + pl.program_id(1) * BM
+            seed = jnp.broadcast_to(a_ref[...], (BM, AW))
 
         def actions(t):
             if not draw:
-                return a_ref[t]  # (BM, AP) bf16
+                return a_ref[t]  # (BM, AP) bf16, or (BM, SP) with join
             u = _hash_uniform((t * Mp + a_row) * AP + a_lane, seed)
             return jnp.where(a_lane < act_dim, u, 0.0).astype(bf)
 
@@ -537,9 +550,13 @@ def _rollout_pallas(mpc_cfg: MPCConfig, dyn_cfg: DynamicsConfig, fd: FoldedDynam
 
         def member_delta(e, sb, a):
             h1 = []
+            x = jnp.stack([sb, a], axis=-1).reshape(BM, 2 * SP) if join else None
             for k in range(nH):
-                acc = jnp.dot(sb, W(ws_ref, e, slice(None), pl.ds(k * CH, CH)), preferred_element_type=f32)
-                acc = acc + jnp.dot(a, W(wa_ref, e, slice(None), pl.ds(k * CH, CH)), preferred_element_type=f32)
+                if join:
+                    acc = jnp.dot(x, W(ws_ref, e, slice(None), pl.ds(k * CH, CH)), preferred_element_type=f32)
+                else:
+                    acc = jnp.dot(sb, W(ws_ref, e, slice(None), pl.ds(k * CH, CH)), preferred_element_type=f32)
+                    acc = acc + jnp.dot(a, W(wa_ref, e, slice(None), pl.ds(k * CH, CH)), preferred_element_type=f32)
                 acc = acc + W(b1_ref, e, slice(None), pl.ds(k * CH, CH))
                 h1.append(leaky(acc).astype(bf))
 
@@ -600,8 +617,8 @@ def _rollout_pallas(mpc_cfg: MPCConfig, dyn_cfg: DynamicsConfig, fd: FoldedDynam
         pl.BlockSpec((1, SP), lambda b, i: (b, 0)),
         pl.BlockSpec((1, SP), lambda b, i: (b, 0)),
         (pl.BlockSpec((1, 1), lambda b, i: (b, 0)) if draw else
-         pl.BlockSpec((None, K, BM, AP), lambda b, i: (b, 0, i, 0))),
-        wspec((SP, HP)), wspec((AP, HP)), wspec((1, HP)), wspec((HP, HP)), wspec((1, HP)),
+         pl.BlockSpec((None, K, BM, SP if join else AP), lambda b, i: (b, 0, i, 0))),
+        wspec(((2 if join else 1) * SP, HP)), wspec((AP, HP)), wspec((1, HP)), wspec((HP, HP)), wspec((1, HP)),
         wspec((HP, SP)), wspec((1, SP)),
     ]
     row_spec = pl.BlockSpec((1, BM), lambda b, i: (b, i))
@@ -610,7 +627,7 @@ def _rollout_pallas(mpc_cfg: MPCConfig, dyn_cfg: DynamicsConfig, fd: FoldedDynam
     if want_final:
         out_specs.append(pl.BlockSpec((None, BM, SP), lambda b, i: (b, i, 0)))
         out_shape.append(jax.ShapeDtypeStruct((B, Mp, SP), f32))
-    flops = 2 * B * Mp * K * (SP * HP + AP * HP + HP * HP + HP * SP) * (E if mean_mode else 1)
+    flops = 2 * B * Mp * K * ((2 * SP if join else SP + AP) * HP + HP * HP + HP * SP) * (E if mean_mode else 1)
     if fused:
         for k, x in enumerate(vweights):
             in_specs.append(per_env(x) if k in (1, 8) else full(x))

@@ -80,12 +80,15 @@ def _value_fn(td3_cfg, td3_state):
 def _mpc_variant(name):
     """name -> (MPCConfig, matmul precision or None).
 
-    Suffixes: "_krng" / "_jrng" action sequences drawn inside the kernel / by jax.random; "_vbf16" value_fn matmuls in single bf16 passes (XLA value); "_xv" value through XLA
+    Suffixes: "_join" state and action as one first-layer operand; "_krng" / "_jrng" action sequences drawn inside the kernel / by jax.random; "_vbf16" value_fn matmuls in single bf16 passes (XLA value); "_xv" value through XLA
     after the kernel (value_fn, as before the fused value); "_fv32" fused value with float32 (TF32)
     operands; "_mean" ensemble mean. Pallas names: pallas_BM<rows>_W<warps>_S<stages>_C<hidden
     block>_N<out block>_VC<value block>; "pallas" alone is the library default tiling.
     """
     from dscpp_jax.mpc import MPCConfig
+    if name.endswith("_join"):  # state and action as one first-layer operand
+        cfg, prec = _mpc_variant(name[:-len("_join")])
+        return dataclasses.replace(cfg, join_input=True), prec
     if name.endswith("_krng") or name.endswith("_jrng"):  # sequences drawn in the kernel / by jax.random
         cfg, prec = _mpc_variant(name[:-len("_krng")])
         return dataclasses.replace(cfg, kernel_rng=name.endswith("_krng")), prec
@@ -483,7 +486,7 @@ def value_quality(data_path, out_npz, num_samples, horizon, n_starts, train_step
     pcfg, _ = _mpc_variant(pallas_variant)
     pk = {f.name: getattr(pcfg, f.name) for f in dataclasses.fields(pcfg)
           if f.name in ("backend", "compute_dtype", "block_rows", "num_warps", "num_stages", "hidden_chunk",
-                        "out_chunk", "value_chunk")}
+                        "out_chunk", "value_chunk", "join_input")}
     acts = sample_action_sequences(jax.random.key(123), base, n_starts, 8)
     variants = {
         "tdv_f32_highest": (dict(backend="xla", compute_dtype="float32"), "highest", vf, None),
@@ -530,7 +533,7 @@ def value_quality(data_path, out_npz, num_samples, horizon, n_starts, train_step
             "v_scale": QUALITY_V_SCALE}
 
 
-def replay_quality(npz_path, data_path, gamma=0.95, tol=0.6):
+def replay_quality(npz_path, data_path, gamma=0.95, tol=0.6, ref=None):
     """True eq. 2 cost (same synthetic V at the true final state) of each variant's chosen sequences."""
     import mujoco
     q = np.load(npz_path)
@@ -562,7 +565,8 @@ def replay_quality(npz_path, data_path, gamma=0.95, tol=0.6):
             costs.append(c), dists.append(dj)
         key = name.replace("seq_", "")
         per_start[key] = (np.asarray(costs), np.asarray(dists))
-    ref = next((r for r in ("E1_f32_highest", "tdv_f32_highest") if r in per_start), "random_seq")
+    if ref is None:
+        ref = next((r for r in ("E1_f32_highest", "tdv_f32_highest") if r in per_start), "random_seq")
     rc, rd = per_start[ref]
     n = len(rc)
     for key, (costs, dists) in per_start.items():
@@ -614,13 +618,15 @@ def main(argv=None):
                    "bf16/ensemble study")
     p.add_argument("--make-ant-data", default=None, metavar="PATH")
     p.add_argument("--replay-quality", default=None, metavar="NPZ", help="with --quality DATA: true replay")
+    p.add_argument("--replay-ref", default=None, help="variant the replay's paired differences refer to "
+                   "(default: the highest-precision float32 one)")
     args = p.parse_args(argv)
 
     if args.make_ant_data:
         make_ant_data(args.make_ant_data)
         return
     if args.replay_quality:
-        res = replay_quality(args.replay_quality, args.quality)
+        res = replay_quality(args.replay_quality, args.quality, ref=args.replay_ref)
         out = args.out or os.path.join(ROOT, "experiments", "results", "bench_learners_quality_replay.json")
         with open(out, "w") as f:
             json.dump({"command": " ".join([os.path.basename(sys.executable)] + sys.argv), "replay": res}, f, indent=1)

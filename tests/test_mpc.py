@@ -327,6 +327,10 @@ def test_in_kernel_sampler_interpreted():
     drawn = mpc_lib._rollout_pallas(cfg, dcfg, fd, obs, goal, seeds, interpret=True, want_final=False)
     given = mpc_lib._rollout_pallas(cfg, dcfg, fd, obs, goal, acts, interpret=True, want_final=False)
     np.testing.assert_array_equal(drawn["cost"], given["cost"])
+    # State and action as one interleaved first-layer operand: the same function.
+    joined = mpc_lib._rollout_pallas(dataclasses.replace(cfg, join_input=True), dcfg, fd, obs, goal, seeds,
+                                     interpret=True, want_final=False)
+    np.testing.assert_allclose(joined["cost"], given["cost"], atol=1e-5)
     rows = jnp.asarray([[5], [20]])
     np.testing.assert_array_equal(mpc_lib._kernel_rng_actions(seeds, 2, 32, 16, 8, t=0, rows=rows)[:, 0],
                                   acts[jnp.arange(2), 0, rows[:, 0], :8])
