@@ -217,11 +217,12 @@ def _policy_actions(config: Config, td3, dyn, obs, goals, key, explore: bool, ra
     B = obs.shape[0]
     tcfg = td3_config(config)
     if config.model_based:
-        value_fn = None
+        value_fn = value_net = None
         if config.uses_value_in_mpc:
-            value_fn = _value_fn(config, td3)
+            value_fn = _value_fn(config, td3)      # XLA paths
+            value_net = _value_net(config, td3)    # fused into the MPC kernel on a GPU
         k_mpc, k_r, k_u = jax.random.split(key, 3)
-        acts = _mpc_actions(config, dyn, k_mpc, obs, goals, value_fn)
+        acts = _mpc_actions(config, dyn, k_mpc, obs, goals, value_fn, value_net)
         if explore:
             p = config.effective_random_prob
             rand = jax.random.uniform(k_u, acts.shape, acts.dtype, -1.0, 1.0)
@@ -467,10 +468,15 @@ def mpc_config(config: Config):
                      use_value=config.uses_value_in_mpc, compute_dtype=config.mpc_dtype)
 
 
-def _mpc_actions(config: Config, dyn, key, obs, goals, value_fn):
+def _mpc_actions(config: Config, dyn, key, obs, goals, value_fn, value_net=None):
     from dscpp_jax.mpc import mpc_actions
     return mpc_actions(mpc_config(config), dyn_config(config), dyn, key, obs, goals,
-                       value_fn=value_fn)
+                       value_fn=value_fn, value_net=value_net)
+
+
+def _value_net(config: Config, td3):
+    from dscpp_jax.mpc import td3_value_net
+    return td3_value_net(td3_config(config), td3)
 
 
 def chain_config(config: Config):

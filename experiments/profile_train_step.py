@@ -68,7 +68,8 @@ def profile(env_name: str, algo: str, B: int, overrides: dict, reps: int) -> dic
     out["env_s"] = _time(env_only, state.env_state, k, reps=reps)
     if cfg.model_based:
         vf = T._value_fn(cfg, state.td3) if cfg.uses_value_in_mpc else None
-        mpc = jax.jit(lambda d, kk, o, g: T._mpc_actions(cfg, d, kk, o, g, vf))
+        vn = T._value_net(cfg, state.td3) if cfg.uses_value_in_mpc else None
+        mpc = jax.jit(lambda d, kk, o, g: T._mpc_actions(cfg, d, kk, o, g, vf, vn))
         obs = state.env_state.obs
         goals = jnp.broadcast_to(jnp.asarray(env.goal, jnp.float32), (B, 2))
         out["mpc_decision_s"] = _time(mpc, state.dyn, k, obs, goals, reps=reps)
