@@ -201,6 +201,20 @@ class _null:
         return False
 
 
+def _run_cost_jobs(jobs, log):
+    """{name: (thunk, matmul precision or None)} -> {name: costs as NumPy}; a variant that fails
+    (e.g. a kernel that does not compile on this device) is logged and left out."""
+    import jax
+    costs = {}
+    for name, (thunk, prec) in jobs.items():
+        try:
+            with (jax.default_matmul_precision(prec) if prec else _null()):
+                costs[name] = np.asarray(thunk())
+        except Exception as e:  # noqa: BLE001
+            log(f"  {name}: ERROR {type(e).__name__}: {str(e)[:300]}")
+    return costs
+
+
 def _fmt_mpc(r):
     if "error" in r:
         return f"  {r['variant']:<28} envs={r['envs']:<4} value={int(r['use_value'])}  ERROR {r['error'][:160]}"
@@ -362,18 +376,14 @@ def quality(data_path, out_npz, num_samples, horizon, n_starts, train_steps, ens
         f"E{ensemble}_member_pallas_bf16": (ensemble, dict(pk, ensemble_mode="member"), None),
         f"E{ensemble}_mean_pallas_bf16": (ensemble, dict(pk, ensemble_mode="mean"), None),
     }
-    costs = {}
+    jobs = {}
     for name, (E, kw, prec) in variants.items():
         cfg = dataclasses.replace(base, **kw)
         dcfg, st, _ = models[E]
         f = jax.jit(lambda s, a, cfg=cfg, dcfg=dcfg: sequence_costs(cfg, dcfg, s, jnp.asarray(s0), jnp.asarray(goal), a,
                                                                     _synthetic_value))
-        try:
-            ctx = jax.default_matmul_precision(prec) if prec else _null()
-            with ctx:
-                costs[name] = np.asarray(f(st, acts))
-        except Exception as e:  # noqa: BLE001
-            log(f"  {name}: ERROR {type(e).__name__}: {str(e)[:300]}")
+        jobs[name] = (lambda f=f, st=st: f(st, acts), prec)
+    costs = _run_cost_jobs(jobs, log)
     acts_np = np.asarray(acts)
     summary = {}
     ref = costs.get("E1_f32_highest")
@@ -494,17 +504,13 @@ def value_quality(data_path, out_npz, num_samples, horizon, n_starts, train_step
         "tdv_pallas_fused_bf16": (dict(pk, value_dtype="bfloat16"), None, None, net),
         "tdv_pallas_fused_f32": (dict(pk, value_dtype="float32"), None, None, net),
     }
-    costs = {}
+    jobs = {}
     for name, (kw, prec, fn, vn) in variants.items():
         cfg = dataclasses.replace(base, **kw)
         f = jax.jit(lambda s, a, cfg=cfg, fn=fn, vn=vn: sequence_costs(cfg, dcfg, s, jnp.asarray(s0), jnp.asarray(goal),
                                                                       a, fn, value_net=vn))
-        try:
-            ctx = jax.default_matmul_precision(prec) if prec else _null()
-            with ctx:
-                costs[name] = np.asarray(f(st, acts))
-        except Exception as e:  # noqa: BLE001
-            log(f"  {name}: ERROR {type(e).__name__}: {str(e)[:300]}")
+        jobs[name] = (lambda f=f: f(st, acts), prec)
+    costs = _run_cost_jobs(jobs, log)
     acts_np = np.asarray(acts)
     summary = {}
     ar = np.arange(n_starts)
