@@ -85,6 +85,8 @@ class Config:
     mpc_horizon: int = 7
     mpc_discount: float = 0.95
     mpc_dtype: str = "float32"
+    mpc_backend: str = "auto"          # auto: the fused kernel on a GPU with bfloat16, else XLA
+    svm_backend: str = "auto"          # auto: the fused SMO kernel on a GPU, else the XLA loop
 
     # --- evaluation, logging, checkpoints (host side) -----------------------------------------
     eval_every: int = 10               # train_step calls between evaluations (0: never)
@@ -195,6 +197,12 @@ class Config:
         need(self.td3_updates_per_step >= 0 and self.dyn_updates_per_step >= 0,
              "updates_per_step values must be >= 0")
         need(self.mpc_dtype in ("float32", "bfloat16"), "mpc_dtype must be float32 or bfloat16")
+        for name in ("mpc_backend", "svm_backend"):
+            need(getattr(self, name) in ("auto", "xla", "pallas"),
+                 f"{name}={getattr(self, name)!r}; choose auto, xla or pallas")
+        need(self.mpc_backend != "pallas" or self.mpc_dtype == "bfloat16",
+             "mpc_backend=pallas computes in bfloat16: also set mpc_dtype=bfloat16 (or use "
+             "mpc_backend=xla)")
         per_env = self.replay_capacity // self.num_envs
         need(per_env >= max(2, self.steps_per_iter),
              f"replay_capacity={self.replay_capacity} gives {per_env} steps per environment for "

@@ -75,7 +75,8 @@ class MPCConfig:
     compute_dtype: "float32" or "bfloat16" matmul operands (accumulation and state stay float32).
     ensemble_mode: "mean" (mean of members at each step; measured better, E times the work) or
         "member" (one member per sequence). Identical for a single model.
-    backend: "auto", "xla" or "pallas" (the fused GPU kernel; bfloat16 only).
+    backend: "auto", "xla" or "pallas" (the fused GPU kernel; bfloat16 only; off a GPU it runs in
+        Pallas interpret mode: slow, for tests).
     block_rows, num_warps, num_stages, hidden_chunk, out_chunk: tiling of the fused kernel (rows per
         program, warps, pipelining stages, first-layer and second-layer hidden blocks).
     value_precision: matmul precision of the value_fn call (None = JAX default; "bfloat16" runs the
@@ -785,16 +786,18 @@ def mpc_actions(mpc_cfg: MPCConfig, dyn_cfg: DynamicsConfig, dyn_state: Dynamics
         first = actions[:, :, 0, :]
     else:
         _check_pallas(mpc_cfg, dyn_cfg)
+        interpret = jax.default_backend() != "gpu"   # off a GPU the kernel can only be interpreted
         fd = dynamics_fold(dyn_cfg, dyn_state, jnp.bfloat16)
         SP, AP, HP, BM, Mp = _kernel_dims(mpc_cfg, obs.shape[-1], act_dim, fd.w_s.shape[2])
         if mpc_cfg.kernel_rng:  # the kernel draws the sequences; recover the chosen first actions
             seeds = _rng_seeds(key, B)
-            cost = _finish_pallas(mpc_cfg, fd, obs, goal, seeds, value_fn, value_net, M, dyn_cfg)
+            cost = _finish_pallas(mpc_cfg, fd, obs, goal, seeds, value_fn, value_net, M, dyn_cfg,
+                                  interpret)
             first = lambda idx: _kernel_rng_actions(seeds, K, Mp, AP, act_dim, t=0, rows=idx)
         else:  # draw directly in the kernel layout (rows past M are never chosen)
             a = jax.random.uniform(key, (B, K, Mp, act_dim), jnp.float32, -1.0, 1.0).astype(jnp.bfloat16)
             cost = _finish_pallas(mpc_cfg, fd, obs, goal, _pad_to(a, (B, K, Mp, AP)), value_fn, value_net, M,
-                                  dyn_cfg)
+                                  dyn_cfg, interpret)
             first = a[:, 0, :M, :]
     idx = jnp.argmin(cost, axis=-1)
     if callable(first):

@@ -81,6 +81,7 @@ class ChainConfig:
     balanced_min_neg: int = 10   # class_weight "balanced" from this many negatives on
     svm_tol: float = 1e-3
     svm_max_iter: Optional[int] = None
+    svm_backend: str = "auto"    # "auto" (fused SMO kernel on GPUs, XLA loop elsewhere) | "xla" | "pallas"
 
     def __post_init__(self):
         def need(ok, msg):
@@ -100,6 +101,8 @@ class ChainConfig:
         need(self.obs_dim >= 2, f"obs_dim={self.obs_dim} must be >= 2 (xy = obs[:2])")
         need(self.svm_gamma > 0, "svm_gamma must be > 0")
         need(0 < self.nu_pessimistic <= 1 and 0 < self.nu_optimistic <= 1, "nu must be in (0, 1]")
+        need(self.svm_backend in ("auto", "xla", "pallas"),
+             f"svm_backend={self.svm_backend!r} must be 'auto', 'xla' or 'pallas'")
 
     @property
     def traj_len(self) -> int:
@@ -439,10 +442,15 @@ def refit(chain: Chain, mask=None) -> Chain:
     has_pos = chain.pos_mask[:, :, 0].any(axis=1)
     do = mask & chain.active & (jnp.arange(K) != GLOBAL) & has_pos
 
+    solver = None
+    if cfg.svm_backend != "auto":
+        from dscpp_jax import svm
+        solver = svm._resolve_inner(None, backend=cfg.svm_backend)
+
     def fit(c):
         clf = _initiation().fit_initiation_batch(
             c.pos_xy.reshape(K, P * L, 2), c.pos_mask.reshape(K, P * L), c.neg_xy, c.neg_mask,
-            initiation_config(cfg), prev=c.clf, dirty=do)
+            initiation_config(cfg), prev=c.clf, dirty=do, _inner=solver)
         return refresh_subgoal_cache(c.replace(clf=clf, fitted=_fitted_flags(clf)), do)
 
     # nothing to fit (most iterations late in training): skip the set-up work entirely

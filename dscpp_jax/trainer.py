@@ -465,7 +465,8 @@ def mpc_config(config: Config):
     from dscpp_jax.mpc import MPCConfig
     return MPCConfig(num_samples=config.mpc_samples, horizon=config.mpc_horizon,
                      discount=config.mpc_discount, goal_tolerance=config.goal_tolerance,
-                     use_value=config.uses_value_in_mpc, compute_dtype=config.mpc_dtype)
+                     use_value=config.uses_value_in_mpc, compute_dtype=config.mpc_dtype,
+                     backend=config.mpc_backend)
 
 
 def _mpc_actions(config: Config, dyn, key, obs, goals, value_fn, value_net=None):
@@ -486,7 +487,7 @@ def chain_config(config: Config):
                        max_pos_traj=config.max_pos_traj, max_neg=config.max_neg,
                        variant=config.classifier_variant, goal_tolerance=config.goal_tolerance,
                        subgoal_tolerance=config.goal_tolerance, obs_dim=_obs_dim(config),
-                       svm_gamma=config.svm_gamma)
+                       svm_gamma=config.svm_gamma, svm_backend=config.svm_backend)
 
 
 def _chain_init(config: Config, goal):

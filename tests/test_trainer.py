@@ -1,5 +1,7 @@
 """Trainer: config validation, no retracing, vmap over seeds, evaluation without side effects,
 the policy constructor, NaN handling, and real learning on the point-mass U-maze."""
+import re
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -225,3 +227,49 @@ def test_nan_physics_ends_that_episode_and_stays_out_of_learning():
             if np.issubdtype(x.dtype, np.floating):
                 assert np.all(np.isfinite(x[valid]))
     assert all(np.isfinite(v) for k, v in m.items() if k.startswith(("td3/", "dynamics/")))
+
+
+def _scripted_goal_option_outcomes(s):
+    """Four successes and four failures of the goal option recorded into a fresh chain."""
+    from dscpp_jax import options as O
+    cfg, B = s.config, 8
+    rng = np.random.default_rng(0)
+    goal = np.asarray(T.make_env(cfg).goal, np.float32)
+    succ = np.arange(B) < 4
+    start = np.where(succ[:, None], goal + rng.uniform(-1, 1, (B, 2)), rng.uniform(-1, 1, (B, 2)))
+    traj = goal + rng.uniform(-1, 1, (B, cfg.buffer_len, 2))
+    obs = np.zeros((B, T._obs_dim(cfg)), np.float32)
+    obs[:, :2] = start
+    return O.record_outcomes(s.chain, np.full((B,), O.GOAL, np.int32), succ,
+                             start.astype(np.float32), traj.astype(np.float32),
+                             np.ones((B, cfg.buffer_len), bool), np.ones((B,), bool),
+                             start_obs=obs)
+
+
+def test_gpu_kernels_inside_train_step_interpreted():
+    # The fused SMO kernel (svm_backend="pallas") and the fused MPC kernel with the value net
+    # inside (mpc_backend="pallas") wired through train_step and evaluate, run in Pallas interpret
+    # mode on the CPU. The SMO kernel takes the XLA loop's path: the same chain comes out.
+    base = dict(warmup_episodes=0, gestation=1, mpc_dtype="bfloat16", mpc_samples=16)
+    states = {}
+    for svm_backend, mpc_backend in (("xla", "xla"), ("pallas", "xla"), ("pallas", "pallas")):
+        cfg = tiny("mb_dscpp", svm_backend=svm_backend, mpc_backend=mpc_backend, **base)
+        s = T.init(jax.random.PRNGKey(4), cfg)
+        s = s.replace(chain=_scripted_goal_option_outcomes(s))   # something for the refits
+        names = set(re.findall(r"name=(\w+)", str(jax.make_jaxpr(T.train_step_impl)(s))))
+        assert ("smo" in names) == (svm_backend == "pallas")          # the kernels are really used
+        assert ("mpc_rollout" in names) == (mpc_backend == "pallas")
+        for _ in range(3):
+            s, m = T.train_step(s)
+        assert all(np.isfinite(v) for k, v in m.items() if k.startswith(("td3/", "dynamics/")))
+        summary, _ = dscpp_jax.evaluate(s, jax.random.PRNGKey(0), 2)
+        assert 0.0 <= summary["eval/success_rate"] <= 1.0
+        states[svm_backend, mpc_backend] = s
+    a, b = states["xla", "xla"].chain, states["pallas", "xla"].chain
+    assert bool(a.fitted[1:].any())                  # classifiers were really refit
+    np.testing.assert_array_equal(np.asarray(a.fitted), np.asarray(b.fitted))
+    for x, y in zip(jax.tree_util.tree_leaves(a.clf), jax.tree_util.tree_leaves(b.clf)):
+        np.testing.assert_allclose(np.asarray(x, np.float64), np.asarray(y, np.float64),
+                                   rtol=1e-5, atol=1e-6)
+    with pytest.raises(ValueError, match="mpc_dtype=bfloat16"):
+        tiny("mb_dscpp", mpc_backend="pallas").validate()
