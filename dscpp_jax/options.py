@@ -442,10 +442,8 @@ def refit(chain: Chain, mask=None) -> Chain:
     has_pos = chain.pos_mask[:, :, 0].any(axis=1)
     do = mask & chain.active & (jnp.arange(K) != GLOBAL) & has_pos
 
-    solver = None
-    if cfg.svm_backend != "auto":
-        from dscpp_jax import svm
-        solver = svm._resolve_inner(None, backend=cfg.svm_backend)
+    from dscpp_jax import svm
+    solver = svm._resolve_inner(None, backend=cfg.svm_backend)
 
     def fit(c):
         clf = _initiation().fit_initiation_batch(
