@@ -41,7 +41,8 @@ def _overrides(pairs: list[str]) -> dict[str, Any]:
 
 def config_from_args(args) -> Config:
     kw = _overrides(args.set)
-    for name in ("num_envs", "steps_per_iter", "total_env_steps", "eval_every", "eval_episodes",
+    for name in ("num_envs", "steps_per_iter", "total_env_steps", "total_episodes", "eval_every",
+                 "eval_episodes",
                  "checkpoint_every", "subgoal"):
         v = getattr(args, name, None)
         if v is not None:
@@ -145,7 +146,7 @@ def train(cfg: Optional[Config] = None, run_dir: Optional[str] = None, resume: b
     last_eval = float("nan")
     saved_iter = start_iter
     try:
-        while int(state.counters.env_steps) < cfg.total_env_steps:
+        while not _schedule_done(cfg, state):
             if max_iterations is not None and int(state.counters.iteration) - start_iter >= max_iterations:
                 break
             prev = state
@@ -167,8 +168,7 @@ def train(cfg: Optional[Config] = None, run_dir: Optional[str] = None, resume: b
                    "time/iteration_s": dt,
                    "time/env_steps_per_s": cfg.steps_per_iteration_total / max(dt, 1e-9)}
             row.update({k: v for k, v in m.items() if not k.startswith("counters/")})
-            if cfg.eval_every and (it % cfg.eval_every == 0 or
-                                   int(state.counters.env_steps) >= cfg.total_env_steps):
+            if cfg.eval_every and (it % cfg.eval_every == 0 or _schedule_done(cfg, state)):
                 ev, _ = evaluate(state)
                 row.update(ev)
                 last_eval = ev["eval/success_rate"]
@@ -208,6 +208,14 @@ def train(cfg: Optional[Config] = None, run_dir: Optional[str] = None, resume: b
         if old_handler is not None:
             signal.signal(signal.SIGINT, old_handler)
     return state, run_dir
+
+
+def _schedule_done(cfg: Config, state) -> bool:
+    """The run's schedule is over: total_env_steps reached, or total_episodes (when > 0)."""
+    c = state.counters
+    if int(c.env_steps) >= cfg.total_env_steps:
+        return True
+    return cfg.total_episodes > 0 and int(c.episodes) >= cfg.total_episodes
 
 
 def _main_thread() -> bool:
@@ -292,11 +300,12 @@ def cmd_train(args) -> int:
         from dscpp_jax.run_logging import read_config
         cfg = Config.from_dict(read_config(args.resume)["config"])
         extra = _overrides(args.set)
-        if args.total_env_steps is not None:
-            extra["total_env_steps"] = args.total_env_steps
+        for name in ("total_env_steps", "total_episodes"):
+            if getattr(args, name) is not None:
+                extra[name] = getattr(args, name)
         # only schedule-length / host-side fields may change on resume
-        allowed = {"total_env_steps", "eval_every", "eval_episodes", "checkpoint_every",
-                   "keep_checkpoints", "log_every"}
+        allowed = {"total_env_steps", "total_episodes", "eval_every", "eval_episodes",
+                   "checkpoint_every", "keep_checkpoints", "log_every"}
         bad = sorted(set(extra) - allowed)
         if bad:
             raise ValueError(f"--resume cannot change {bad}: they change the state's shapes or the "
@@ -350,6 +359,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--num-envs", dest="num_envs", type=int, default=None)
     t.add_argument("--steps-per-iter", dest="steps_per_iter", type=int, default=None)
     t.add_argument("--total-steps", dest="total_env_steps", type=int, default=None)
+    t.add_argument("--total-episodes", dest="total_episodes", type=int, default=None,
+                   help="also stop once this many episodes finished (0: no episode limit)")
     t.add_argument("--eval-every", dest="eval_every", type=int, default=None)
     t.add_argument("--eval-episodes", dest="eval_episodes", type=int, default=None)
     t.add_argument("--checkpoint-every", dest="checkpoint_every", type=int, default=None)

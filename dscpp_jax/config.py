@@ -25,8 +25,8 @@ PRESETS = ("paper", "fast")
 HIERARCHICAL_ALGOS = ("mb_dscpp", "mf_dscpp", "dual", "dsc")
 MODEL_BASED_ALGOS = ("mb_dscpp", "mb_flat", "mb_flat_value")
 # Fields only the host driver reads (the TrainState carries `Config.device_view()`).
-HOST_ONLY_DEFAULTS = dict(seed=0, total_env_steps=1, eval_every=0, log_every=1,
-                          checkpoint_every=0, keep_checkpoints=1, preset="paper")
+HOST_ONLY_DEFAULTS = dict(seed=0, total_env_steps=1, total_episodes=0, eval_every=0,
+                          log_every=1, checkpoint_every=0, keep_checkpoints=1, preset="paper")
 
 
 @dataclass(frozen=True)
@@ -43,6 +43,7 @@ class Config:
     num_envs: int = 1                  # B parallel environments
     steps_per_iter: int = 1000         # T env steps per train_step (per environment)
     total_env_steps: int = 2_001_000   # stop after this many env steps (all envs together)
+    total_episodes: int = 0            # also stop once this many episodes finished (0: no limit)
 
     # --- episodes and options (paper constants) ----------------------------------------------
     episode_length: int = 1000
@@ -189,6 +190,7 @@ class Config:
         need(self.max_options >= 3, f"max_options={self.max_options} must be >= 3 (global, goal "
              "and at least one chain link)")
         need(self.warmup_episodes >= 0, "warmup_episodes must be >= 0")
+        need(self.total_episodes >= 0, "total_episodes must be >= 0 (0: no episode limit)")
         need(self.goal_tolerance > 0, "goal_tolerance must be > 0")
         need(0.0 < self.discount <= 1.0, "discount must be in (0, 1]")
         need(0.0 < self.mpc_discount <= 1.0, "mpc_discount must be in (0, 1]")
@@ -246,13 +248,14 @@ def preset(name: str = "fast", env: str = "point_u_maze", algo: str = "mb_dscpp"
       transition, TD3 learning rate 1e-4 for the model-based variant (3e-4 model free), gestation
       5 (10 on four rooms: appendix Table 4), up to 24 options (the original has no cap; 12 filled
       up before the U-maze chain reached the start), 16 evaluation episodes every 25 iterations,
-      2M env steps (the paper's 2,000 episodes). Meant for one GPU.
+      stops after the paper's 2,001 episodes (or 4M env steps). Meant for one GPU.
     """
     if name not in PRESETS:
         raise ValueError(f"unknown preset {name!r}; choose one of {PRESETS}")
     base: dict[str, Any] = dict(env=env, algo=algo, preset=name)
     if name == "paper":
         base.update(num_envs=1, steps_per_iter=1000, total_env_steps=2_001_000,
+                    total_episodes=2001,
                     eval_every=10, eval_episodes=1, checkpoint_every=50)
     elif _is_point(env):
         base.update(
@@ -267,7 +270,7 @@ def preset(name: str = "fast", env: str = "point_u_maze", algo: str = "mb_dscpp"
         )
     else:
         base.update(
-            num_envs=128, steps_per_iter=50, total_env_steps=2_000_000,
+            num_envs=128, steps_per_iter=50, total_env_steps=4_000_000, total_episodes=2001,
             gestation=10 if env == "four_rooms" else 5,
             td3_updates_per_step=0.25 if algo in MODEL_BASED_ALGOS else 0.5, td3_batch_size=256,
             td3_lr=1e-4 if algo in MODEL_BASED_ALGOS else -1.0,

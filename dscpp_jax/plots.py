@@ -129,23 +129,48 @@ def _curve(run_dir: str, column: str, x_column: str = "env_steps"):
     return (x[ok], y[ok]) if ok.any() else None
 
 
+def _group_runs(run_dirs: Sequence[str]) -> dict:
+    """Runs whose configs differ only in the seed (and host-side schedule fields) form one group,
+    named "<env> <algo>"; where several groups share env and algo, the fields that tell them
+    apart are appended (e.g. "u_maze mb_dscpp td3_batch_size=1024")."""
+    import json
+
+    from dscpp_jax.config import HOST_ONLY_DEFAULTS
+    from dscpp_jax.run_logging import read_config
+    runs_of: dict[str, list[str]] = {}
+    cfg_of: dict[str, dict] = {}
+    for r in run_dirs:
+        try:
+            c = {k: v for k, v in read_config(r)["config"].items() if k not in HOST_ONLY_DEFAULTS}
+        except Exception:  # noqa: BLE001
+            runs_of.setdefault(os.path.basename(os.path.normpath(r)), []).append(r)
+            continue
+        key = json.dumps(c, sort_keys=True)
+        cfg_of[key] = c
+        runs_of.setdefault(key, []).append(r)
+    groups: dict[str, list[str]] = {}
+    for key, runs in runs_of.items():
+        c = cfg_of.get(key)
+        if c is None:
+            groups[key] = runs
+            continue
+        name = f"{c['env']} {c['algo']}" + (" (dp)" if c.get("subgoal") == "dp" else "")
+        same = [o for o in cfg_of.values() if o["env"] == c["env"] and o["algo"] == c["algo"]]
+        diff = sorted(k for k in c if any(o.get(k) != c[k] for o in same))
+        if diff:
+            name += " " + " ".join(f"{k}={c[k]}" for k in diff)
+        groups.setdefault(name, []).extend(runs)
+    return groups
+
+
 def plot_curves(run_dirs: Sequence[str], path: str, labels: Optional[Sequence[str]] = None,
                 group: bool = True) -> str:
     """Eval success from the start vs env steps, episodes and wall-clock, and the number of
-    options and training-episode success vs env steps. Runs with the same (env, algo) are grouped
-    as seeds: mean +- standard error on a common grid."""
-    from dscpp_jax.run_logging import read_config
+    options and training-episode success vs env steps. Runs that differ only in the seed are
+    grouped: mean +- standard error on a common grid (see `_group_runs`)."""
     plt = _plt()
-    groups: dict[str, list[str]] = {}
-    for r in run_dirs:
-        try:
-            c = read_config(r)["config"]
-            name = f"{c['env']} {c['algo']}" + (f" ({c['subgoal']})" if c.get("subgoal") == "dp" else "")
-        except Exception:  # noqa: BLE001
-            name = os.path.basename(os.path.normpath(r))
-        if not group:
-            name = os.path.basename(os.path.normpath(r))
-        groups.setdefault(name, []).append(r)
+    groups = _group_runs(run_dirs) if group else {
+        os.path.basename(os.path.normpath(r)): [r] for r in run_dirs}
     panels = [("env_steps", "eval/success_rate", "eval success rate (from the start)"),
               ("episodes", "eval/success_rate", "eval success rate (from the start)"),
               ("wall_clock", "eval/success_rate", "eval success rate (from the start)"),

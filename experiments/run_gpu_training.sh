@@ -9,8 +9,10 @@
 #     bash experiments/run_gpu_training.sh
 #   ENV=u_maze ALGOS="mb_dscpp mf_dscpp" BUDGET=420 bash experiments/run_gpu_training.sh  # one GPU
 #
-# A job is GPU:ENV:ALGO; jobs naming the same GPU share it (memory split evenly).
-# EXTRA is appended to every fresh run's command line (e.g. EXTRA="--set max_options=20").
+# A job is GPU:ENV:ALGO[:TAG]; jobs naming the same GPU share it (memory split evenly).
+# EXTRA is appended to every fresh run's command line (e.g. EXTRA="--set max_options=20"), and
+# ARGS_<TAG> to the fresh runs of jobs tagged TAG (e.g. ARGS_b1k="--set td3_batch_size=1024");
+# a tagged job's run and results are named <env>_<algo>_<tag>.
 set -uo pipefail
 ENV=${ENV:-u_maze}
 BUDGET=${BUDGET:-420}
@@ -28,9 +30,16 @@ nvidia-smi --query-gpu=index,name,memory.total --format=csv,noheader 2>/dev/null
 declare -A per_gpu
 for j in $JOBS; do g=${j%%:*}; per_gpu[$g]=$(( ${per_gpu[$g]:-0} + 1 )); done
 
-run_job() {  # gpu env algo
-  local gpu=$1 env=$2 algo=$3
-  local run=runs/gpu_${env}_${algo} dest=$OUT/${env}_${algo}
+name_of() {  # env algo [tag]
+  if [ -n "${3:-}" ]; then echo "${1}_${2}_${3}"; else echo "${1}_${2}"; fi
+}
+
+run_job() {  # gpu env algo [tag]
+  local gpu=$1 env=$2 algo=$3 tag=${4:-}
+  local name; name=$(name_of "$env" "$algo" "$tag")
+  local run=runs/gpu_$name dest=$OUT/$name
+  local tag_args=""
+  if [ -n "$tag" ]; then local v="ARGS_$tag"; tag_args=${!v:-}; fi
   local frac
   frac=$(python3 -c "print(round(0.9 / ${per_gpu[$gpu]}, 2))")
   export CUDA_VISIBLE_DEVICES=$gpu XLA_PYTHON_CLIENT_MEM_FRACTION=$frac
@@ -38,23 +47,25 @@ run_job() {  # gpu env algo
   if [ -d "$run/checkpoints" ] && [ -n "$(ls "$run/checkpoints" 2>/dev/null)" ]; then
     args=(--resume "$run")
   else
-    args=(--env "$env" --algo "$algo" --seed 0 --run-dir "$run" $EXTRA)
+    args=(--env "$env" --algo "$algo" --seed 0 --run-dir "$run" $EXTRA $tag_args)
   fi
   mkdir -p "$dest"
   echo "== [gpu $gpu] python -m dscpp_jax.cli train ${args[*]} --time-budget $BUDGET --no-progress --plot"
   python -m dscpp_jax.cli train "${args[@]}" --time-budget "$BUDGET" --no-progress --plot \
     > "$dest/train.log" 2>&1
-  python -m dscpp_jax.cli eval --run "$run" --episodes "$EVAL_EPISODES" > "$dest/eval.log" 2>&1
+  if [ "$EVAL_EPISODES" -gt 0 ]; then  # 0: no separate evaluation (e.g. a chunk to be resumed)
+    python -m dscpp_jax.cli eval --run "$run" --episodes "$EVAL_EPISODES" > "$dest/eval.log" 2>&1
+  fi
   cp "$run/metrics.csv" "$run/config.json" "$run/eval.json" "$dest/" 2>/dev/null
   cp "$run/plots/trajectory.png" "$run/plots/classifiers.png" "$run/eval_trajectory.png" "$dest/" \
     2>/dev/null
-  grep -v -e "warp" -e "^WARNING" "$dest/train.log" | tail -n 4 | sed "s/^/[$env $algo] /"
+  grep -v -e "warp" -e "^WARNING" "$dest/train.log" | tail -n 4 | sed "s/^/[$name] /"
 }
 
 pids=()
 for j in $JOBS; do
-  IFS=: read -r gpu env algo <<< "$j"
-  run_job "$gpu" "$env" "$algo" &
+  IFS=: read -r gpu env algo tag <<< "$j"
+  run_job "$gpu" "$env" "$algo" "$tag" &
   pids+=($!)
 done
 for p in "${pids[@]}"; do wait "$p"; done
@@ -62,16 +73,17 @@ for p in "${pids[@]}"; do wait "$p"; done
 for env in $(for j in $JOBS; do IFS=: read -r _ e _ <<< "$j"; echo "$e"; done | sort -u); do
   runs=()
   for j in $JOBS; do
-    IFS=: read -r _ e a <<< "$j"
-    [ "$e" = "$env" ] && runs+=("runs/gpu_${e}_${a}")
+    IFS=: read -r _ e a t <<< "$j"
+    [ "$e" = "$env" ] && runs+=("runs/gpu_$(name_of "$e" "$a" "$t")")
   done
   python -m dscpp_jax.cli plot "${runs[@]}" --out "$OUT/plots_$env" --curves-only 2>&1 | grep -v warp
   cp "$OUT/plots_$env/curves.png" "$OUT/curves_$env.png" 2>/dev/null && rm -rf "$OUT/plots_$env"
 done
 for j in $JOBS; do
-  IFS=: read -r _ e a <<< "$j"
+  IFS=: read -r _ e a t <<< "$j"
+  n=$(name_of "$e" "$a" "$t")
   python3 -c "import json,sys; d=json.load(open(sys.argv[1])); print(sys.argv[2], {k: round(v, 3) if isinstance(v, float) else v for k, v in d.items() if '/' not in k or k in ('eval/success_rate', 'eval/steps_to_goal', 'eval/num_options')})" \
-    "runs/gpu_${e}_${a}/eval.json" "$e/$a" 2>/dev/null
+    "runs/gpu_$n/eval.json" "$n" 2>/dev/null
 done
-(cd "$OUT" && tar czf results.tgz --exclude results.tgz .)
+tmp_tgz=$(mktemp --suffix .tgz) && tar czf "$tmp_tgz" -C "$OUT" --exclude results.tgz . && mv "$tmp_tgz" "$OUT/results.tgz"
 ls -la "$OUT"

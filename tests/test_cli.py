@@ -59,10 +59,18 @@ def test_cli_train_resume_interrupt_eval_plot(tmp_path, monkeypatch, capsys):
     assert rc == 0 and ck.latest_step(run) == 5
     assert read_metrics(run)["env_steps"][-1] == 400
     assert main(["train", "--resume", run, "--set", "num_envs=8"]) == 2
+    # an episode budget stops the run before its step budget (4 envs finish an episode every
+    # 100 steps each: 4 episodes by 400 env steps, 8 by 800)
+    assert read_metrics(run)["episodes"][-1] == 4
+    rc = main(["train", "--resume", run, "--total-steps", "4000", "--total-episodes", "8",
+               "--no-progress"])
+    assert rc == 0
+    m = read_metrics(run)
+    assert m["episodes"][-1] == 8 and m["env_steps"][-1] == 800
 
     assert main(["eval", "--run", run, "--episodes", "2"]) == 0
     ev = json.load(open(os.path.join(run, "eval.json")))
-    assert 0.0 <= ev["eval/success_rate"] <= 1.0 and ev["iteration"] == 5
+    assert 0.0 <= ev["eval/success_rate"] <= 1.0 and ev["iteration"] == 10
     assert os.path.exists(os.path.join(run, "eval_trajectory.png"))
     assert main(["eval", "--run", run, "--starts", "8,8;0,4", "--no-plot"]) == 0
     assert len(json.load(open(os.path.join(run, "eval_starts.json")))["steps_per_start"]) == 2
@@ -96,3 +104,22 @@ def test_metrics_csv_widens_for_late_columns(tmp_path):
     # resuming from iteration 1 drops the later row
     RunLogger(str(tmp_path), resume_iteration=1, tensorboard=False).close()
     assert read_metrics(str(tmp_path))["iteration"] == [1.0]
+
+
+def test_plot_groups_seeds_and_names_variants(tmp_path):
+    from dscpp_jax.config import preset
+    from dscpp_jax.plots import _group_runs
+    from dscpp_jax.run_logging import write_config
+    runs = {}
+    for name, kw in {"a0": dict(seed=0), "a1": dict(seed=1),
+                     "b0": dict(seed=0, td3_batch_size=1024, total_env_steps=5),
+                     "c0": dict(seed=0, algo="mf_dscpp")}.items():
+        runs[name] = str(tmp_path / name)
+        os.makedirs(runs[name])
+        kw = dict(kw)
+        algo = kw.pop("algo", "mb_dscpp")
+        write_config(runs[name], preset("fast", "u_maze", algo, **kw).to_dict())
+    groups = _group_runs([runs[k] for k in ("a0", "a1", "b0", "c0")])
+    assert groups == {"u_maze mb_dscpp td3_batch_size=256": [runs["a0"], runs["a1"]],
+                      "u_maze mb_dscpp td3_batch_size=1024": [runs["b0"]],
+                      "u_maze mf_dscpp": [runs["c0"]]}
