@@ -61,6 +61,7 @@ __all__ = [
 ]
 
 _DTYPES = {"float32": jnp.float32, "bfloat16": jnp.bfloat16}
+_JOIN_MIN_ENVS = 32   # join_input=None: the joined first layer from this many environments up
 
 
 @dataclasses.dataclass(frozen=True)
@@ -90,7 +91,9 @@ class MPCConfig:
         (a counter-based hash of one jax.random seed per environment; uniform in [-1, 1) like
         jax.random.uniform) instead of writing them to memory first with jax.random (False).
     join_input: feed state and action to the fused kernel's first layer as one interleaved operand
-        (one matmul per hidden block instead of two; same result; not yet timed on a GPU).
+        (one matmul per hidden block instead of two; same result). None (default): joined from 32
+        environments up, where it measured faster on an H200 (6,163 vs 5,961 decisions/s at 256
+        environments), and split below (2,080 vs 1,409 at one environment).
     """
 
     num_samples: int = 14000
@@ -111,7 +114,7 @@ class MPCConfig:
     value_dtype: str = "bfloat16"
     value_chunk: int = 128
     kernel_rng: bool = True
-    join_input: bool = False
+    join_input: Optional[bool] = None
 
     def __post_init__(self):
         if self.num_samples < 1 or self.horizon < 1:
@@ -449,7 +452,8 @@ def _rollout_pallas(mpc_cfg: MPCConfig, dyn_cfg: DynamicsConfig, fd: FoldedDynam
         raise ValueError(f"kernel actions must be {(B, K, Mp, AP)}, got {acts_k.shape}")
 
     ws, wa, b1, w2, b2, w3, b3 = _kernel_weights(fd, SP, AP, HP)
-    join = mpc_cfg.join_input and AP <= SP
+    join_wanted = B >= _JOIN_MIN_ENVS if mpc_cfg.join_input is None else mpc_cfg.join_input
+    join = join_wanted and AP <= SP
     if join and not draw:  # explicit actions: widen to the state's lanes for the interleaved operand
         acts_k = _pad_to(acts_k, (B, K, Mp, SP))
     if join:  # rows 2j: state input j, rows 2j + 1: action input j (zero past the action size)

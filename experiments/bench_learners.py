@@ -80,15 +80,17 @@ def _value_fn(td3_cfg, td3_state):
 def _mpc_variant(name):
     """name -> (MPCConfig, matmul precision or None).
 
-    Suffixes: "_join" state and action as one first-layer operand; "_krng" / "_jrng" action sequences drawn inside the kernel / by jax.random; "_vbf16" value_fn matmuls in single bf16 passes (XLA value); "_xv" value through XLA
+    Suffixes: "_join" / "_split" state and action as one first-layer operand / as two (default:
+    joined from 32 environments up); "_krng" / "_jrng" action sequences drawn inside the kernel / by jax.random; "_vbf16" value_fn matmuls in single bf16 passes (XLA value); "_xv" value through XLA
     after the kernel (value_fn, as before the fused value); "_fv32" fused value with float32 (TF32)
     operands; "_mean" ensemble mean. Pallas names: pallas_BM<rows>_W<warps>_S<stages>_C<hidden
     block>_N<out block>_VC<value block>; "pallas" alone is the library default tiling.
     """
     from dscpp_jax.mpc import MPCConfig
-    if name.endswith("_join"):  # state and action as one first-layer operand
-        cfg, prec = _mpc_variant(name[:-len("_join")])
-        return dataclasses.replace(cfg, join_input=True), prec
+    if name.endswith("_join") or name.endswith("_split"):  # one first-layer operand or two
+        join = name.endswith("_join")
+        cfg, prec = _mpc_variant(name[:-len("_join" if join else "_split")])
+        return dataclasses.replace(cfg, join_input=join), prec
     if name.endswith("_krng") or name.endswith("_jrng"):  # sequences drawn in the kernel / by jax.random
         cfg, prec = _mpc_variant(name[:-len("_krng")])
         return dataclasses.replace(cfg, kernel_rng=name.endswith("_krng")), prec
