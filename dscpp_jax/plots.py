@@ -178,7 +178,7 @@ def plot_curves(run_dirs: Sequence[str], path: str, labels: Optional[Sequence[st
               ("env_steps", "train/episode_success", "training episode success")]
     xlabels = {"env_steps": "env steps", "episodes": "training episodes",
                "wall_clock": "wall-clock (s)"}
-    fig, axes = plt.subplots(1, len(panels), figsize=(5 * len(panels), 4))
+    fig, axes = plt.subplots(1, len(panels), figsize=(5 * len(panels), 4 + 0.3 * ((len(groups) + 1) // 2)))
     for (xcol, col, ylabel), ax in zip(panels, axes):
         for name, runs in groups.items():
             curves = [c for c in (_curve(r, col, xcol) for r in runs) if c is not None]
@@ -197,8 +197,12 @@ def plot_curves(run_dirs: Sequence[str], path: str, labels: Optional[Sequence[st
         ax.grid(alpha=0.3)
         if col.endswith("success_rate") or col.endswith("episode_success"):
             ax.set_ylim(-0.03, 1.03)
-    axes[0].legend(fontsize=8)
-    _save(fig, path)
+    handles, names = axes[0].get_legend_handles_labels()
+    if handles:  # below the panels, where long group names cover no data
+        fig.legend(handles, names, loc="lower center", ncol=min(len(names), 2), fontsize=9,
+                   frameon=False)
+    rows = (len(names) + 1) // 2
+    _save(fig, path, rect=(0, min(0.4, 0.07 * rows), 1, 1) if handles else None)
     return path
 
 
@@ -223,11 +227,11 @@ def plot_runs(run_dirs: Sequence[str], out_dir: str, with_state: bool = True) ->
     return paths
 
 
-def _save(fig, path: str) -> None:
+def _save(fig, path: str, rect=None) -> None:
     d = os.path.dirname(path)
     if d:
         os.makedirs(d, exist_ok=True)
-    fig.tight_layout()
+    fig.tight_layout(rect=rect)
     fig.savefig(path, dpi=110)
     import matplotlib.pyplot as plt
     plt.close(fig)
