@@ -42,8 +42,7 @@ def _overrides(pairs: list[str]) -> dict[str, Any]:
 def config_from_args(args) -> Config:
     kw = _overrides(args.set)
     for name in ("num_envs", "steps_per_iter", "total_env_steps", "total_episodes", "eval_every",
-                 "eval_episodes",
-                 "checkpoint_every", "subgoal"):
+                 "eval_episodes", "checkpoint_every", "subgoal"):
         v = getattr(args, name, None)
         if v is not None:
             kw[name] = v

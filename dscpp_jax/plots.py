@@ -4,7 +4,7 @@ metrics.csv for one or many runs (mean +- standard error; paper Figure 6, append
 from __future__ import annotations
 
 import os
-from typing import Optional, Sequence
+from typing import Sequence
 
 import numpy as np
 
@@ -163,8 +163,7 @@ def _group_runs(run_dirs: Sequence[str]) -> dict:
     return groups
 
 
-def plot_curves(run_dirs: Sequence[str], path: str, labels: Optional[Sequence[str]] = None,
-                group: bool = True) -> str:
+def plot_curves(run_dirs: Sequence[str], path: str, group: bool = True) -> str:
     """Eval success from the start vs env steps, episodes and wall-clock, and the number of
     options and training-episode success vs env steps. Runs that differ only in the seed are
     grouped: mean +- standard error on a common grid (see `_group_runs`)."""
