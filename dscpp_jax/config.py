@@ -65,6 +65,8 @@ class Config:
     td3_batch_size: int = 100
     td3_updates_per_step: float = 1.0  # gradient steps per stored env transition
     td3_lr: float = -1.0               # < 0: the algorithm's preset (1e-5 model based, 3e-4 free)
+    td3_clip_targets: bool = False     # clip TD targets to [-1 / (1 - discount), 0], the range of
+                                       # every value under the 0 / -1 reward (not in the original)
     discount: float = 0.99
     replay_capacity: int = 1_000_000
     her_strategy: str = "final"        # final | future | none
@@ -247,7 +249,10 @@ def preset(name: str = "fast", env: str = "point_u_maze", algo: str = "mb_dscpp"
       (the fused kernel on a GPU), 0.1 model steps per transition; TD3: 0.25 steps per transition
       at batch 256 and learning rate 1e-4 model based, the paper's one step per transition at
       batch 512 and 3e-4 model free (0.5 steps at batch 256 reached 0.19 on the U-maze at 2,001
-      episodes, this 0.31: experiments/results/train_ant/episodes2001), gestation
+      episodes, this 0.31: experiments/results/train_ant/episodes2001), TD targets clipped to
+      [-1 / (1 - discount), 0] (without it the model-based critic's loss climbed to 40-290 on
+      four of five U-maze seeds, and success from the start fell with it: 0.58 vs 0.77 on seeds
+      1-4, experiments/results/train_ant/clip_targets), gestation
       5 (10 on four rooms: appendix Table 4), up to 24 options (the original has no cap; 12 filled
       up before the U-maze chain reached the start), 16 evaluation episodes every 25 iterations,
       stops after the paper's 2,001 episodes (or 4M env steps). Meant for one GPU.
@@ -279,7 +284,7 @@ def preset(name: str = "fast", env: str = "point_u_maze", algo: str = "mb_dscpp"
             td3_lr=1e-4 if algo in MODEL_BASED_ALGOS else -1.0,
             replay_capacity=1_000_000, model_capacity=300_000,
             dyn_updates_per_step=0.1, dyn_pretrain_steps=2000, mpc_samples=4096,
-            mpc_dtype="bfloat16", max_options=24,
+            mpc_dtype="bfloat16", max_options=24, td3_clip_targets=True,
             eval_every=25, eval_episodes=16, checkpoint_every=25,
         )
     base.update(overrides)

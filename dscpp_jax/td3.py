@@ -60,9 +60,19 @@ class TD3Config:
     random_action_prob_start: float = 0.8
     random_action_switch_successes: int = 3
     replay_capacity: int = 1_000_000
+    # Clip TD targets to [lo, hi] (None: no clipping). With rewards in {-1, 0} every true value
+    # lies in [-1 / (1 - discount), 0]; clipping there (as HER implementations do) stops the
+    # critic from bootstrapping off values that no policy can have.
+    target_range: Optional[Tuple[float, float]] = None
 
     def __post_init__(self):
         object.__setattr__(self, "hidden", tuple(int(h) for h in self.hidden))
+        if self.target_range is not None:
+            lo, hi = (float(v) for v in self.target_range)
+            if not lo < hi:
+                raise ValueError(f"TD3Config.target_range must be (lo, hi) with lo < hi, got "
+                                 f"{self.target_range}")
+            object.__setattr__(self, "target_range", (lo, hi))
         if self.policy_delay < 1:
             raise ValueError(f"TD3Config.policy_delay must be >= 1, got {self.policy_delay}")
         if self.batch_size < 1:
@@ -227,12 +237,16 @@ def td3_target_noise(cfg: TD3Config, key: jax.Array, shape: Tuple[int, ...]) -> 
 def td3_targets(cfg: TD3Config, state: TD3State, batch: Transition, noise: jax.Array) -> jax.Array:
     """Clipped double-Q TD targets ``r + gamma * c * min_i Q'_i(s', g, clip(pi'(s', g) + noise))``.
 
-    ``c = batch.discount`` is the continuation flag (0 at the goal). Pure; shape ``(B,)``.
+    ``c = batch.discount`` is the continuation flag (0 at the goal). With ``cfg.target_range``
+    the targets are clipped to that interval. Pure; shape ``(B,)``.
     """
     a_next = _pi(cfg, state.target_actor_params, batch.next_obs, batch.goal)
     a_next = jnp.clip(a_next + noise, -cfg.max_action, cfg.max_action)
     q_next = jnp.min(_q(cfg, state.target_critic_params, batch.next_obs, batch.goal, a_next), axis=0)
-    return batch.reward + cfg.discount * batch.discount * q_next
+    y = batch.reward + cfg.discount * batch.discount * q_next
+    if cfg.target_range is not None:
+        y = jnp.clip(y, cfg.target_range[0], cfg.target_range[1])
+    return y
 
 
 def _polyak(tau: float, target: PyTree, online: PyTree) -> PyTree:

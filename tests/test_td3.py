@@ -100,6 +100,20 @@ def test_networks_and_targets_match_numpy(cfg):
     np.testing.assert_allclose(np.asarray(_value(cfg, st, b.obs, b.goal)), v_ref, rtol=1e-4, atol=1e-4)
 
 
+def test_target_range_clips_targets_like_numpy():
+    base = TD3Config.model_based(hidden=(32, 16))
+    cfg = TD3Config.model_based(hidden=(32, 16), target_range=(-0.5, 0.0))
+    st = _perturbed_state(base)
+    b = _batch(4)
+    noise = _noise(base, jax.random.key(3), b.action.shape)
+    y_free = np.asarray(jax.jit(td3_targets, static_argnums=0)(base, st, b, noise))
+    y = np.asarray(jax.jit(td3_targets, static_argnums=0)(cfg, st, b, noise))
+    assert (y_free < -0.5).any() and (y_free > -0.5).any()  # the range binds on part of the batch
+    np.testing.assert_allclose(y, np.clip(y_free, -0.5, 0.0), rtol=1e-6, atol=1e-6)
+    with pytest.raises(ValueError, match="target_range"):
+        TD3Config(target_range=(0.0, -1.0))
+
+
 def test_output_normalisation_bounds_mean_abs_action():
     cfg = TD3Config.model_based(hidden=(16,))
     st = _init(jax.random.key(0), OBS, GOAL, ACT, cfg)

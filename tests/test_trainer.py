@@ -32,6 +32,8 @@ def test_presets_keep_paper_constants():
     assert (p.warmup_episodes, p.mpc_samples, p.mpc_horizon, p.num_envs) == (50, 14000, 7, 1)
     assert p.effective_td3_lr == 1e-5 and preset("paper", "u_maze", "mf_dscpp").effective_td3_lr == 3e-4
     hash(p)  # static jit argument
+    assert T.td3_config(p).target_range is None  # the original does not clip TD targets
+    assert T.td3_config(p.override(td3_clip_targets=True)).target_range == pytest.approx((-100.0, 0.0))
 
 
 def test_no_retracing_across_iterations():
