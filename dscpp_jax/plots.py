@@ -135,13 +135,15 @@ def _group_runs(run_dirs: Sequence[str]) -> dict:
     apart are appended (e.g. "u_maze mb_dscpp td3_batch_size=1024")."""
     import json
 
-    from dscpp_jax.config import HOST_ONLY_DEFAULTS
+    from dscpp_jax.config import HOST_ONLY_DEFAULTS, Config
     from dscpp_jax.run_logging import read_config
     runs_of: dict[str, list[str]] = {}
     cfg_of: dict[str, dict] = {}
     for r in run_dirs:
         try:
-            c = {k: v for k, v in read_config(r)["config"].items() if k not in HOST_ONLY_DEFAULTS}
+            # fields added after a run was made take their defaults, the value that run used
+            full = Config.from_dict(read_config(r)["config"]).to_dict()
+            c = {k: v for k, v in full.items() if k not in HOST_ONLY_DEFAULTS}
         except Exception:  # noqa: BLE001
             runs_of.setdefault(os.path.basename(os.path.normpath(r)), []).append(r)
             continue

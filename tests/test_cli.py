@@ -123,3 +123,12 @@ def test_plot_groups_seeds_and_names_variants(tmp_path):
     assert groups == {"u_maze mb_dscpp td3_batch_size=256": [runs["a0"], runs["a1"]],
                       "u_maze mb_dscpp td3_batch_size=1024": [runs["b0"]],
                       "u_maze mf_dscpp": [runs["c0"]]}
+    # a run written before a field existed used that field's default: it is named by it
+    old = str(tmp_path / "old")
+    os.makedirs(old)
+    cfg = preset("fast", "u_maze", "mb_dscpp", td3_clip_targets=False).to_dict()
+    del cfg["td3_clip_targets"]
+    write_config(old, cfg)
+    groups = _group_runs([runs["a0"], runs["a1"], old])
+    assert groups == {"u_maze mb_dscpp td3_clip_targets=True": [runs["a0"], runs["a1"]],
+                      "u_maze mb_dscpp td3_clip_targets=False": [old]}
