@@ -196,6 +196,9 @@ class Config:
         need(self.goal_tolerance > 0, "goal_tolerance must be > 0")
         need(0.0 < self.discount <= 1.0, "discount must be in (0, 1]")
         need(0.0 < self.mpc_discount <= 1.0, "mpc_discount must be in (0, 1]")
+        need(not self.td3_clip_targets or self.discount < 1.0,
+             "td3_clip_targets needs discount < 1 (with discount 1 the values have no lower "
+             "bound); lower discount or set td3_clip_targets=false")
         need(0.0 <= self.her_relabel_prob <= 1.0, "her_relabel_prob must be in [0, 1]")
         need(self.random_action_prob <= 1.0, "random_action_prob must be <= 1")
         need(self.td3_updates_per_step >= 0 and self.dyn_updates_per_step >= 0,

@@ -99,8 +99,7 @@ def td3_config(config: Config) -> TD3Config:
               replay_capacity=config.replay_capacity,
               actor_lr=config.effective_td3_lr, critic_lr=config.effective_td3_lr)
     if config.td3_clip_targets:
-        kw.update(target_range=(-1.0 / (1.0 - config.discount), 0.0) if config.discount < 1.0
-                  else (-float(config.episode_length), 0.0))
+        kw.update(target_range=(-1.0 / (1.0 - config.discount), 0.0))
     if config.random_action_prob >= 0:
         kw.update(random_action_prob=config.random_action_prob)
         if config.model_based:

@@ -20,6 +20,8 @@ def test_invalid_configs_fail_before_compiling():
         preset("fast", "point_u_maze", "mf_dscpp", replay_capacity=100).validate()
     with pytest.raises(ValueError, match="max_options"):
         Config(max_options=2).validate()
+    with pytest.raises(ValueError, match="td3_clip_targets needs discount < 1"):
+        Config(td3_clip_targets=True, discount=1.0).validate()
     with pytest.raises(ValueError, match="unknown config field"):
         Config().override(not_a_field=1)
     with pytest.raises(ValueError, match="valid names"):
