@@ -28,6 +28,9 @@ class EvalResult:
     active: jax.Array         # (L, N) bool: the episode was still running at that step
     option_executions: jax.Array  # (K,) option executions that ended during evaluation
     option_successes: jax.Array   # (K,)
+    option_failures: jax.Array    # (N,) int32: option executions that ended without success
+    global_steps: jax.Array       # (N,) int32: steps spent in the global option
+    upright: jax.Array            # (N,) float32: env.upright at the end (below 0: on its back)
     chain_probability: jax.Array  # () from the training statistics (eq. 3)
     num_options: jax.Array        # () options in the chain (including global and goal options)
 
@@ -51,7 +54,8 @@ def _eval_impl(state: T.TrainState, key, num_episodes: int, starts=None) -> Eval
         return (t < L) & jnp.any(active)
 
     def body(carry):
-        t, es, ex, active, success, steps, n_exec, n_succ, xy_buf, opt_buf, act_buf = carry
+        (t, es, ex, active, success, steps, n_exec, n_succ, xy_buf, opt_buf, act_buf, n_fail,
+         n_global) = carry
         k_opt, k_act = jax.random.split(jax.random.fold_in(k_run, t))
         obs = es.obs
         ex = T._choose_options(config, env, chain, dp_table, td3, ex, obs, k_opt, active,
@@ -67,6 +71,8 @@ def _eval_impl(state: T.TrainState, key, num_episodes: int, starts=None) -> Eval
         onehot = jax.nn.one_hot(jnp.where(ended, ex.option, K), K + 1, dtype=jnp.int32)[:, :K]
         n_exec = n_exec + onehot.sum(0)
         n_succ = n_succ + (onehot * (osucc & ended)[:, None]).sum(0)
+        n_fail = n_fail + (ended & ~osucc & (ex.option >= 0)).astype(jnp.int32)
+        n_global = n_global + (active & (ex.option == 0)).astype(jnp.int32)
         opt_buf = opt_buf.at[t].set(jnp.where(active, ex.option, T.NO_OPTION))
         act_buf = act_buf.at[t].set(active)
         xy_buf = xy_buf.at[t + 1].set(nes.obs[:, :2])
@@ -74,15 +80,16 @@ def _eval_impl(state: T.TrainState, key, num_episodes: int, starts=None) -> Eval
         success = success | (done & (nes.info["success"] > 0))
         steps = steps + active.astype(jnp.int32)
         active = active & ~done
-        return (t + 1, nes, ex, active, success, steps, n_exec, n_succ, xy_buf, opt_buf, act_buf)
+        return (t + 1, nes, ex, active, success, steps, n_exec, n_succ, xy_buf, opt_buf, act_buf,
+                n_fail, n_global)
 
     z = jnp.zeros((K,), jnp.int32)
     xy0 = jnp.broadcast_to(es.obs[None, :, :2], (L + 1, N, 2))
     carry0 = (jnp.zeros((), jnp.int32), es, ex, jnp.ones((N,), bool), jnp.zeros((N,), bool),
               jnp.zeros((N,), jnp.int32), z, z, xy0, jnp.full((L, N), T.NO_OPTION, jnp.int32),
-              jnp.zeros((L, N), bool))
+              jnp.zeros((L, N), bool), jnp.zeros((N,), jnp.int32), jnp.zeros((N,), jnp.int32))
     carry = jax.lax.while_loop(cond, body, carry0)
-    t_end, es_end, _, _, success, steps, n_exec, n_succ, xy, opt, act = carry
+    t_end, es_end, _, _, success, steps, n_exec, n_succ, xy, opt, act, n_fail, n_global = carry
     # positions after an episode ended stay where it ended
     last = jnp.take_along_axis(xy, steps[None, :, None], axis=0)
     xy = jnp.where((jnp.arange(L + 1)[:, None] > steps[None, :])[..., None], last, xy)
@@ -94,6 +101,8 @@ def _eval_impl(state: T.TrainState, key, num_episodes: int, starts=None) -> Eval
     return EvalResult(success=success, steps=steps, xy=xy, option=opt,
                       active=act,
                       option_executions=n_exec, option_successes=n_succ,
+                      option_failures=n_fail, global_steps=n_global,
+                      upright=jnp.asarray(env.upright(es_end.obs), jnp.float32),
                       chain_probability=jnp.asarray(cp, jnp.float32),
                       num_options=jnp.asarray(nopt, jnp.float32))
 
@@ -112,6 +121,12 @@ def summarize(result: EvalResult, prefix: str = "eval/") -> Dict[str, float]:
         f"{prefix}steps_to_goal": float(steps[succ].mean()) if succ.any() else float("nan"),
         f"{prefix}chain_probability": float(result.chain_probability),
         f"{prefix}num_options": float(result.num_options),
+        # why episodes fail: on its back at the end, option timeouts, time in the global option
+        f"{prefix}flipped_rate": float((np.asarray(result.upright) < 0).mean()),
+        f"{prefix}flipped_failures": float((~succ & (np.asarray(result.upright) < 0)).sum()),
+        f"{prefix}option_failures_per_episode": float(np.asarray(result.option_failures).mean()),
+        f"{prefix}global_option_share": float(np.asarray(result.global_steps).sum()
+                                              / max(1, int(steps.sum()))),
     }
     ne, ns = np.asarray(result.option_executions), np.asarray(result.option_successes)
     for k in range(ne.shape[0]):

@@ -34,19 +34,28 @@ def _layout(cfg):
 
 
 def plot_trajectory(cfg, result, path: str, title: str = "", max_episodes: int = 4) -> str:
-    """Executed trajectories (EvalResult) over the maze, each segment coloured by its option."""
+    """Executed trajectories (EvalResult) over the maze, each segment coloured by its option.
+
+    Failed episodes are drawn first (up to half of `max_episodes`), and where every failed episode
+    ended is marked: a red x, or a red triangle when the body ended on its back.
+    """
     from matplotlib.collections import LineCollection
     plt = _plt()
     xy = np.asarray(result.xy)            # (L+1, N, 2)
     opt = np.asarray(result.option)       # (L, N)
     act = np.asarray(result.active)       # (L, N)
-    n = min(max_episodes, xy.shape[1])
+    succ_e = np.asarray(result.success).astype(bool)
+    upright = (np.asarray(result.upright) if getattr(result, "upright", None) is not None
+               else np.ones(succ_e.shape))
+    fails, wins = np.flatnonzero(~succ_e), np.flatnonzero(succ_e)
+    n_f = min(len(fails), max(max_episodes // 2, max_episodes - len(wins)))
+    drawn = list(fails[:n_f]) + list(wins[:max_episodes - n_f])
     K = int(cfg.max_options)
     cmap = plt.get_cmap("tab10" if K <= 10 else "tab20")
     fig, ax = plt.subplots(figsize=(6, 6))
     _draw_maze(ax, _layout(cfg))
     used = set()
-    for e in range(n):
+    for e in drawn:
         m = act[:, e] & (opt[:, e] >= 0)
         seg = np.stack([xy[:-1, e], xy[1:, e]], axis=1)[m]
         o = opt[m, e]
@@ -56,10 +65,18 @@ def plot_trajectory(cfg, result, path: str, title: str = "", max_episodes: int =
     for o in sorted(used):
         name = {0: "global", 1: "goal option"}.get(o, f"option {o}")
         ax.plot([], [], color=cmap(o % cmap.N), lw=3, label=name)
+    if len(fails):
+        end = xy[-1]
+        flip = upright[fails] < 0
+        ax.scatter(end[fails[~flip], 0], end[fails[~flip], 1], marker="x", c="red", s=40,
+                   zorder=5, label=f"failed, end ({int((~flip).sum())})")
+        if flip.any():
+            ax.scatter(end[fails[flip], 0], end[fails[flip], 1], marker="v", c="red", s=40,
+                       zorder=5, label=f"failed on its back ({int(flip.sum())})")
     ax.legend(loc="best", fontsize=7)
-    succ = float(np.asarray(result.success).mean())
     ax.set_title(title or f"{cfg.env} {cfg.algo}", fontsize=10)
-    ax.set_xlabel(f"x   (success {succ:.0%} of {xy.shape[1]} episodes; {n} drawn)")
+    ax.set_xlabel(f"x   (success {succ_e.mean():.0%} of {xy.shape[1]} episodes; "
+                  f"{len(drawn)} drawn, {n_f} failed)")
     ax.set_ylabel("y")
     _save(fig, path)
     return path

@@ -36,6 +36,13 @@ class GoalMazeEnv:
     def step(self, state, action):
         raise NotImplementedError
 
+    def upright(self, obs):
+        """How upright the body is, in [-1, 1] (1: upright, below 0: upside down); (...,) from obs.
+
+        A point mass cannot tip over, so the base class returns 1.
+        """
+        return jnp.ones(jnp.shape(obs)[:-1], jnp.float32)
+
     def sample_start(self, key):
         """Diverse start: uniform over free space, `start_margin` from walls, outside the goal region."""
         return self.layout.sample_free(key, self.goal, margin=self.config.start_margin,

@@ -22,6 +22,8 @@ def test_invalid_configs_fail_before_compiling():
         Config(max_options=2).validate()
     with pytest.raises(ValueError, match="td3_clip_targets needs discount < 1"):
         Config(td3_clip_targets=True, discount=1.0).validate()
+    with pytest.raises(ValueError, match="ant_integrator must be Euler, RK4 or implicitfast"):
+        Config(env="u_maze", ant_integrator="rk4").validate()
     with pytest.raises(ValueError, match="unknown config field"):
         Config().override(not_a_field=1)
     with pytest.raises(ValueError, match="valid names"):
@@ -36,6 +38,12 @@ def test_presets_keep_paper_constants():
     hash(p)  # static jit argument
     assert T.td3_config(p).target_range is None  # the original does not clip TD targets
     assert T.td3_config(p.override(td3_clip_targets=True)).target_range == pytest.approx((-100.0, 0.0))
+    # the ant's integrator reaches the MuJoCo model; point-mass envs ignore it
+    import mujoco
+    env = T.make_env(p.override(ant_integrator="RK4"))
+    assert env.mj_model.opt.integrator == mujoco.mjtIntegrator.mjINT_RK4
+    assert T.make_env(p).mj_model.opt.integrator == mujoco.mjtIntegrator.mjINT_EULER
+    assert T.make_env(preset("fast", "point_u_maze", ant_integrator="RK4")).backend != "mjx"
 
 
 def test_no_retracing_across_iterations():
@@ -85,6 +93,16 @@ def test_evaluate_has_no_side_effects_and_takes_starts():
     assert_trees_equal(before, s)
     assert res.xy.shape == (cfg.episode_length + 1, 3, 2) and res.option.shape == (cfg.episode_length, 3)
     assert 0.0 <= summary["eval/success_rate"] <= 1.0
+    # failure bookkeeping: per-episode option failures add up to the per-option counts
+    assert int(np.sum(res.option_failures)) == int(np.sum(res.option_executions)
+                                                   - np.sum(res.option_successes))
+    steps, glob = np.asarray(res.steps), np.asarray(res.global_steps)
+    assert np.all((0 <= glob) & (glob <= steps))
+    opt, act = np.asarray(res.option), np.asarray(res.active)
+    np.testing.assert_array_equal(glob, ((opt == 0) & act).sum(0))
+    assert summary["eval/global_option_share"] == pytest.approx(glob.sum() / steps.sum())
+    np.testing.assert_array_equal(np.asarray(res.upright), 1.0)   # a point mass never tips
+    assert summary["eval/flipped_rate"] == 0.0
     # a start inside the goal region succeeds at once
     goal = np.asarray(T.make_env(cfg).goal)
     summary, res = dscpp_jax.evaluate(s, starts=[goal + 0.1, [0.0, 0.0]])
