@@ -11,6 +11,7 @@ and exits; `--resume RUN_DIR` continues exactly from the last checkpoint.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import signal
@@ -118,7 +119,9 @@ def train(cfg: Optional[Config] = None, run_dir: Optional[str] = None, resume: b
         print(f"resumed {run_dir} at iteration {start_iter} "
               f"({int(state.counters.env_steps)} env steps)", file=sys.stderr)
     else:
-        write_config(run_dir, cfg.to_dict(), {"command": " ".join(sys.argv)})
+        env_cfg = T.make_env(cfg).config   # the physics and task constants the run trains on
+        write_config(run_dir, cfg.to_dict(), {"command": " ".join(sys.argv),
+                                              "env": dataclasses.asdict(env_cfg)})
     logger = RunLogger(run_dir, resume_iteration=start_iter)
     ckpt = ck.Checkpointer(run_dir, keep=cfg.keep_checkpoints)
 

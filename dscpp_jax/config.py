@@ -35,6 +35,7 @@ class Config:
 
     # --- task and algorithm -------------------------------------------------------------------
     env: str = "point_u_maze"          # envs.make name
+    ant_integrator: str = "Euler"      # ant physics: Euler (fast) | RK4 (D4RL's) | implicitfast
     algo: str = "mb_dscpp"             # one of ALGOS
     subgoal: str = "robust"            # robust | dp
     seed: int = 0
@@ -204,6 +205,8 @@ class Config:
         need(self.td3_updates_per_step >= 0 and self.dyn_updates_per_step >= 0,
              "updates_per_step values must be >= 0")
         need(self.mpc_dtype in ("float32", "bfloat16"), "mpc_dtype must be float32 or bfloat16")
+        need(self.ant_integrator in ("Euler", "RK4", "implicitfast"),
+             f"ant_integrator must be Euler, RK4 or implicitfast, got {self.ant_integrator!r}")
         for name in ("mpc_backend", "svm_backend"):
             need(getattr(self, name) in ("auto", "xla", "pallas"),
                  f"{name}={getattr(self, name)!r}; choose auto, xla or pallas")

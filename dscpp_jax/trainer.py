@@ -88,8 +88,9 @@ class TrainState:
 @functools.lru_cache(maxsize=None)
 def make_env(config: Config):
     import envs
+    kw = {} if config.env.startswith("point_") else dict(integrator=config.ant_integrator)
     return envs.make(config.env, episode_length=config.episode_length,
-                     goal_tolerance=config.goal_tolerance)
+                     goal_tolerance=config.goal_tolerance, **kw)
 
 
 def td3_config(config: Config) -> TD3Config:

@@ -89,6 +89,15 @@ class AntConfig:
     timestep: float = 0.02
     frame_skip: int = 5
     integrator: str = "Euler"  # "Euler" (semi-implicit, default, fast) or "RK4" (D4RL)
+    # Euler integrates joint damping implicitly (MuJoCo's default); False makes it explicit.
+    eulerdamp: bool = True
+    # D4RL's soft ant contacts (solref/solimp of its ant.xml default geom class). MuJoCo's
+    # stiffer defaults (solimp "0.9 0.95 0.001") tip the ant over far more often under aggressive
+    # actions (experiments/results/ant_flips.md). D4RL also has a 1 cm contact margin; MJX does not
+    # follow MuJoCo C with a margin (3e-2 apart within 10 steps, against 1e-5 without), so it is 0.
+    contact_margin: float = 0.0
+    contact_solref: str = "0.02 1"
+    contact_solimp: str = "0.8 0.8 0.01"
     gear: float = 30.0
     solver: str = "Newton"
     # Newton with 4 iterations / 8 line-search steps converges on these contacts: MJX then tracks
@@ -186,12 +195,13 @@ def ant_mjcf(layout: MazeLayout, cfg: AntConfig = AntConfig()) -> str:
   <compiler angle="degree" coordinate="local" inertiafromgeom="true"/>
   <option timestep="{cfg.timestep:g}" integrator="{cfg.integrator}" solver="{cfg.solver}"
           iterations="{cfg.solver_iterations}" ls_iterations="{cfg.ls_iterations}" jacobian="{cfg.jacobian}">
-    <flag eulerdamp="disable"/>
+    {'' if cfg.eulerdamp else '<flag eulerdamp="disable"/>'}
   </option>
   {custom}
   <default>
     <joint armature="1" damping="1" limited="true"/>
-    <geom contype="0" conaffinity="0" condim="3" density="5.0" friction="1 0.5 0.5" rgba="0.8 0.6 0.4 1"/>
+    <geom contype="0" conaffinity="0" condim="3" density="5.0" friction="1 0.5 0.5" margin="{cfg.contact_margin:g}"
+          solref="{cfg.contact_solref}" solimp="{cfg.contact_solimp}" rgba="0.8 0.6 0.4 1"/>
   </default>
   <worldbody>
     <light directional="true" diffuse="1 1 1" pos="0 0 10" dir="0 0 -1"/>
@@ -314,6 +324,14 @@ class AntMazeEnv(GoalMazeEnv):
         obs, reward, done, info = goals.finish_step(state.info, obs, state.obs, self.episode_length,
                                                     self.goal_tolerance, nan=nan)
         return state.replace(pipeline_state=data, obs=obs, reward=reward, done=done, info=info)
+
+    def upright(self, obs):
+        """World-z component of the torso's z axis: 1 upright, below 0 on its back.
+
+        obs[3:7] is the torso quaternion (w, x, y, z); the z axis's world z is 1 - 2 (x^2 + y^2).
+        """
+        q = jnp.asarray(obs)[..., 3:7]
+        return 1.0 - 2.0 * (q[..., 1] ** 2 + q[..., 2] ** 2)
 
     @staticmethod
     def _obs(data):

@@ -33,6 +33,8 @@ def test_cli_train_resume_interrupt_eval_plot(tmp_path, monkeypatch, capsys):
     assert rc == 0
     cfg = json.load(open(os.path.join(run, "config.json")))
     assert cfg["config"]["algo"] == "mb_dscpp" and "jax" in cfg["versions"]
+    # the env's own constants are recorded too (physics settings of the ant, for instance)
+    assert cfg["env"]["episode_length"] == cfg["config"]["episode_length"]
     m = read_metrics(run)
     assert m["iteration"] == [1.0, 2.0]
     assert m["eval/success_rate"][-1] == m["eval/success_rate"][-1]  # evaluated (not NaN)

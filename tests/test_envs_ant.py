@@ -211,3 +211,37 @@ def test_success_nan_and_goal_override():
     # Diverse starts for the ant keep the torso out of walls.
     xy = jax.vmap(env.sample_start)(jax.random.split(jax.random.key(1), 256))
     assert not np.any(np.asarray(env.layout.in_wall(xy, env.config.start_margin * 0.99)))
+
+
+def test_upright_matches_mujoco_torso_rotation():
+    # oracle: MuJoCo C's torso rotation matrix, z-axis world z component (xmat[2, 2])
+    env = get_env("u_maze")
+    m = env.mj_model
+    d = mujoco.MjData(m)
+    torso = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, "torso")
+    rng = np.random.default_rng(0)
+    for _ in range(5):
+        q = rng.normal(size=4)
+        d.qpos[:] = m.qpos0
+        d.qpos[3:7] = q / np.linalg.norm(q)
+        mujoco.mj_forward(m, d)
+        obs = np.concatenate([d.qpos[:15], d.qvel[:14]])
+        np.testing.assert_allclose(float(env.upright(obs)), d.xmat[torso].reshape(3, 3)[2, 2],
+                                   atol=1e-5)
+    d.qpos[:] = m.qpos0
+    assert float(env.upright(np.concatenate([d.qpos[:15], d.qvel[:14]]))) == pytest.approx(1.0)
+    d.qpos[3:7] = [0.0, 1.0, 0.0, 0.0]            # half a turn about x: on its back
+    assert float(env.upright(np.concatenate([d.qpos[:15], d.qvel[:14]]))) == pytest.approx(-1.0)
+
+
+def test_contacts_follow_d4rl_and_damping_is_implicit():
+    # D4RL's ant.xml default geom class: solref ".02 1", solimp ".8 .8 .01"; the margin stays 0
+    # (MJX departs from MuJoCo C with one, see AntConfig)
+    m = get_env("u_maze").mj_model
+    np.testing.assert_allclose(m.geom_solimp[:, :3], np.tile([0.8, 0.8, 0.01], (m.ngeom, 1)))
+    np.testing.assert_allclose(m.geom_solref, np.tile([0.02, 1.0], (m.ngeom, 1)))
+    assert np.all(m.geom_margin == 0.0)
+    assert not m.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_EULERDAMP
+    stiff = envs.make("u_maze", contact_solimp="0.9 0.95 0.001", eulerdamp=False).mj_model
+    np.testing.assert_allclose(stiff.geom_solimp[:, :3], np.tile([0.9, 0.95, 0.001], (m.ngeom, 1)))
+    assert stiff.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_EULERDAMP
