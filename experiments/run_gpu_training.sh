@@ -9,10 +9,11 @@
 #     bash experiments/run_gpu_training.sh
 #   ENV=u_maze ALGOS="mb_dscpp mf_dscpp" BUDGET=420 bash experiments/run_gpu_training.sh  # one GPU
 #
-# A job is GPU:ENV:ALGO[:TAG]; jobs naming the same GPU share it (memory split evenly).
+# A job is GPU:ENV:ALGO[:TAG]; jobs naming the same GPU share it (memory split evenly), or, with
+# SERIAL=1, run on it one after another (each with the whole GPU).
 # EXTRA is appended to every fresh run's command line (e.g. EXTRA="--set max_options=20"), and
 # ARGS_<TAG> to the fresh runs of jobs tagged TAG (e.g. ARGS_b1k="--set td3_batch_size=1024");
-# a tagged job's run and results are named <env>_<algo>_<tag>.
+# a tagged job's run and results are named <env>_<algo>_<tag>; BUDGET_<TAG> overrides BUDGET for it.
 set -uo pipefail
 ENV=${ENV:-u_maze}
 BUDGET=${BUDGET:-420}
@@ -20,6 +21,7 @@ OUT=${OUT:-experiments/results/train_${ENV}}
 ALGOS=${ALGOS:-"mb_dscpp mf_dscpp"}
 EXTRA=${EXTRA:-}
 EVAL_EPISODES=${EVAL_EPISODES:-32}
+SERIAL=${SERIAL:-0}
 if [ -z "${JOBS:-}" ]; then
   JOBS=""
   for a in $ALGOS; do JOBS="$JOBS 0:$ENV:$a"; done
@@ -40,8 +42,12 @@ run_job() {  # gpu env algo [tag]
   local run=runs/gpu_$name dest=$OUT/$name
   local tag_args=""
   if [ -n "$tag" ]; then local v="ARGS_$tag"; tag_args=${!v:-}; fi
+  local budget=$BUDGET
+  if [ -n "$tag" ]; then local b="BUDGET_$tag"; budget=${!b:-$BUDGET}; fi
+  local share=${per_gpu[$gpu]}
+  [ "$SERIAL" = 1 ] && share=1
   local frac
-  frac=$(python3 -c "print(round(0.9 / ${per_gpu[$gpu]}, 2))")
+  frac=$(python3 -c "print(round(0.9 / $share, 2))")
   export CUDA_VISIBLE_DEVICES=$gpu XLA_PYTHON_CLIENT_MEM_FRACTION=$frac
   local args
   if [ -d "$run/checkpoints" ] && [ -n "$(ls "$run/checkpoints" 2>/dev/null)" ]; then
@@ -50,8 +56,8 @@ run_job() {  # gpu env algo [tag]
     args=(--env "$env" --algo "$algo" --seed 0 --run-dir "$run" $EXTRA $tag_args)
   fi
   mkdir -p "$dest"
-  echo "== [gpu $gpu] python -m dscpp_jax.cli train ${args[*]} --time-budget $BUDGET --no-progress --plot"
-  python -m dscpp_jax.cli train "${args[@]}" --time-budget "$BUDGET" --no-progress --plot \
+  echo "== [gpu $gpu] python -m dscpp_jax.cli train ${args[*]} --time-budget $budget --no-progress --plot"
+  python -m dscpp_jax.cli train "${args[@]}" --time-budget "$budget" --no-progress --plot \
     > "$dest/train.log" 2>&1
   if [ "$EVAL_EPISODES" -gt 0 ]; then  # 0: no separate evaluation (e.g. a chunk to be resumed)
     python -m dscpp_jax.cli eval --run "$run" --episodes "$EVAL_EPISODES" > "$dest/eval.log" 2>&1
@@ -63,11 +69,23 @@ run_job() {  # gpu env algo [tag]
 }
 
 pids=()
-for j in $JOBS; do
-  IFS=: read -r gpu env algo tag <<< "$j"
-  run_job "$gpu" "$env" "$algo" "$tag" &
-  pids+=($!)
-done
+if [ "$SERIAL" = 1 ]; then
+  for g in "${!per_gpu[@]}"; do
+    (
+      for j in $JOBS; do
+        IFS=: read -r gpu env algo tag <<< "$j"
+        [ "$gpu" = "$g" ] && run_job "$gpu" "$env" "$algo" "$tag"
+      done
+    ) &
+    pids+=($!)
+  done
+else
+  for j in $JOBS; do
+    IFS=: read -r gpu env algo tag <<< "$j"
+    run_job "$gpu" "$env" "$algo" "$tag" &
+    pids+=($!)
+  done
+fi
 for p in "${pids[@]}"; do wait "$p"; done
 
 for env in $(for j in $JOBS; do IFS=: read -r _ e _ <<< "$j"; echo "$e"; done | sort -u); do
@@ -82,7 +100,7 @@ done
 for j in $JOBS; do
   IFS=: read -r _ e a t <<< "$j"
   n=$(name_of "$e" "$a" "$t")
-  python3 -c "import json,sys; d=json.load(open(sys.argv[1])); print(sys.argv[2], {k: round(v, 3) if isinstance(v, float) else v for k, v in d.items() if '/' not in k or k in ('eval/success_rate', 'eval/steps_to_goal', 'eval/num_options')})" \
+  python3 -c "import json,sys; d=json.load(open(sys.argv[1])); print(sys.argv[2], {k: round(v, 3) if isinstance(v, float) else v for k, v in d.items() if '/' not in k or k in ('eval/success_rate', 'eval/steps_to_goal', 'eval/num_options', 'eval/flipped_rate', 'eval/flipped_failures', 'eval/option_failures_per_episode', 'eval/global_option_share')})" \
     "runs/gpu_$n/eval.json" "$n" 2>/dev/null
 done
 tmp_tgz=$(mktemp --suffix .tgz) && tar czf "$tmp_tgz" -C "$OUT" --exclude results.tgz . && mv "$tmp_tgz" "$OUT/results.tgz"
