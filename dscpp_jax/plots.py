@@ -159,8 +159,11 @@ def _group_runs(run_dirs: Sequence[str]) -> dict:
     for r in run_dirs:
         try:
             # fields added after a run was made take their defaults, the value that run used
-            full = Config.from_dict(read_config(r)["config"]).to_dict()
+            payload = read_config(r)
+            full = Config.from_dict(payload["config"]).to_dict()
             c = {k: v for k, v in full.items() if k not in HOST_ONLY_DEFAULTS}
+            # the env's own settings (physics), where the run recorded them
+            c.update({f"env.{k}": v for k, v in payload.get("env", {}).items()})
         except Exception:  # noqa: BLE001
             runs_of.setdefault(os.path.basename(os.path.normpath(r)), []).append(r)
             continue
@@ -175,7 +178,8 @@ def _group_runs(run_dirs: Sequence[str]) -> dict:
             continue
         name = f"{c['env']} {c['algo']}" + (" (dp)" if c.get("subgoal") == "dp" else "")
         same = [o for o in cfg_of.values() if o["env"] == c["env"] and o["algo"] == c["algo"]]
-        diff = sorted(k for k in c if any(o.get(k) != c[k] for o in same))
+        diff = sorted(k for k in c if any(o.get(k) != c[k] for o in same)
+                      and not (k.startswith("env.") and any(k not in o for o in same)))
         if diff:
             name += " " + " ".join(f"{k}={c[k]}" for k in diff)
         groups.setdefault(name, []).extend(runs)
@@ -185,10 +189,25 @@ def _group_runs(run_dirs: Sequence[str]) -> dict:
 def plot_curves(run_dirs: Sequence[str], path: str, group: bool = True) -> str:
     """Eval success from the start vs env steps, episodes and wall-clock, and the number of
     options and training-episode success vs env steps. Runs that differ only in the seed are
-    grouped: mean +- standard error on a common grid (see `_group_runs`)."""
+    grouped: mean +- standard error on a common grid (see `_group_runs`). An entry "LABEL=RUN_DIR"
+    puts that run in the group LABEL instead (runs with the same label are averaged; the path is
+    what follows the last "=")."""
     plt = _plt()
-    groups = _group_runs(run_dirs) if group else {
-        os.path.basename(os.path.normpath(r)): [r] for r in run_dirs}
+    labelled: dict[str, list[str]] = {}
+    plain = []
+    for r in run_dirs:
+        label, sep, run = str(r).rpartition("=")   # the label may hold "=", the path not
+        if sep and not os.path.isdir(str(r)):
+            labelled.setdefault(label, []).append(run)
+        else:
+            plain.append(r)
+    missing = [r for rs in labelled.values() for r in rs] + plain
+    missing = [r for r in missing if not os.path.isdir(r)]
+    if missing:
+        raise ValueError(f"not a run directory: {', '.join(missing)}")
+    groups = _group_runs(plain) if group else {
+        os.path.basename(os.path.normpath(r)): [r] for r in plain}
+    groups.update(labelled)
     panels = [("env_steps", "eval/success_rate", "eval success rate (from the start)"),
               ("episodes", "eval/success_rate", "eval success rate (from the start)"),
               ("wall_clock", "eval/success_rate", "eval success rate (from the start)"),
@@ -234,6 +253,8 @@ def plot_runs(run_dirs: Sequence[str], out_dir: str, with_state: bool = True) ->
         from dscpp_jax.cli import load_run
         from dscpp_jax.evaluate import evaluate
         for r in run_dirs:
+            _, sep, run = str(r).rpartition("=")
+            r = run if sep and not os.path.isdir(str(r)) else r
             tag = "" if len(run_dirs) == 1 else os.path.basename(os.path.normpath(r)) + "_"
             cfg, state = load_run(r)
             _, res = evaluate(state, jax.random.PRNGKey(0), max(4, cfg.eval_episodes))

@@ -134,3 +134,48 @@ def test_plot_groups_seeds_and_names_variants(tmp_path):
     groups = _group_runs([runs["a0"], runs["a1"], old])
     assert groups == {"u_maze mb_dscpp td3_clip_targets=True": [runs["a0"], runs["a1"]],
                       "u_maze mb_dscpp td3_clip_targets=False": [old]}
+    # runs that recorded different env settings (physics) are told apart by them
+    soft, stiff = str(tmp_path / "soft"), str(tmp_path / "stiff")
+    for r, solimp in ((soft, "0.8 0.8 0.01"), (stiff, "0.9 0.95 0.001")):
+        os.makedirs(r)
+        write_config(r, preset("fast", "u_maze", "mb_dscpp").to_dict(),
+                     {"env": {"contact_solimp": solimp, "episode_length": 1000}})
+    assert _group_runs([soft, stiff]) == {
+        "u_maze mb_dscpp env.contact_solimp=0.8 0.8 0.01": [soft],
+        "u_maze mb_dscpp env.contact_solimp=0.9 0.95 0.001": [stiff]}
+
+
+def test_plot_curves_takes_labels(tmp_path):
+    from dscpp_jax.config import preset
+    from dscpp_jax.plots import plot_curves
+    from dscpp_jax.run_logging import write_config
+    runs = []
+    for k in range(3):
+        r = tmp_path / f"r{k}"
+        os.makedirs(r)
+        write_config(str(r), preset("fast", "u_maze", "mb_dscpp", seed=k).to_dict())
+        with open(r / "metrics.csv", "w") as f:
+            f.write("iteration,env_steps,episodes,wall_clock,eval/success_rate\n")
+            for i in range(1, 4):
+                f.write(f"{i},{100 * i},{10 * i},{i},{0.1 * i * (k + 1)}\n")
+        runs.append(str(r))
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    seen = {}
+    orig = plt.Axes.plot
+
+    def spy(self, *a, **kw):
+        seen.setdefault(kw.get("label"), 0)
+        seen[kw.get("label")] += 1
+        return orig(self, *a, **kw)
+    plt.Axes.plot = spy
+    try:
+        path = plot_curves([f"before={runs[0]}", f"after, x=1={runs[1]}", f"after, x=1={runs[2]}"],
+                           str(tmp_path / "c.png"))
+    finally:
+        plt.Axes.plot = orig
+    assert os.path.exists(path)
+    assert "before (n=1)" in seen and "after, x=1 (n=2)" in seen
+    with pytest.raises(ValueError, match="not a run directory"):
+        plot_curves([f"a={tmp_path / 'nope'}"], str(tmp_path / "d.png"))
