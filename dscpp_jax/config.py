@@ -89,6 +89,8 @@ class Config:
     mpc_horizon: int = 7
     mpc_discount: float = 0.95
     mpc_dtype: str = "float32"
+    mpc_upright_weight: float = 0.0    # ant: cost per unit of predicted tilt below mpc_upright_min
+    mpc_upright_min: float = 0.5       # (0: off, the paper's eq. 2; see mpc.MPCConfig)
     mpc_backend: str = "auto"          # auto: the fused kernel on a GPU with bfloat16, else XLA
     svm_backend: str = "auto"          # auto: the fused SMO kernel on a GPU, else the XLA loop
 
@@ -205,6 +207,11 @@ class Config:
         need(self.td3_updates_per_step >= 0 and self.dyn_updates_per_step >= 0,
              "updates_per_step values must be >= 0")
         need(self.mpc_dtype in ("float32", "bfloat16"), "mpc_dtype must be float32 or bfloat16")
+        need(self.mpc_upright_weight >= 0 and -1.0 <= self.mpc_upright_min <= 1.0,
+             "mpc_upright_weight must be >= 0 and mpc_upright_min in [-1, 1]")
+        need(self.mpc_upright_weight == 0 or not self.env.startswith("point_"),
+             "mpc_upright_weight needs a body that can tip over (the ant envs); the point mass has "
+             "no orientation: set it to 0")
         need(self.ant_integrator in ("Euler", "RK4", "implicitfast"),
              f"ant_integrator must be Euler, RK4 or implicitfast, got {self.ant_integrator!r}")
         for name in ("mpc_backend", "svm_backend"):

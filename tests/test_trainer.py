@@ -22,6 +22,8 @@ def test_invalid_configs_fail_before_compiling():
         Config(max_options=2).validate()
     with pytest.raises(ValueError, match="td3_clip_targets needs discount < 1"):
         Config(td3_clip_targets=True, discount=1.0).validate()
+    with pytest.raises(ValueError, match="the point mass has no orientation"):
+        Config(env="point_u_maze", mpc_upright_weight=10.0).validate()
     with pytest.raises(ValueError, match="ant_integrator must be Euler, RK4 or implicitfast"):
         Config(env="u_maze", ant_integrator="rk4").validate()
     with pytest.raises(ValueError, match="unknown config field"):
@@ -38,6 +40,9 @@ def test_presets_keep_paper_constants():
     hash(p)  # static jit argument
     assert T.td3_config(p).target_range is None  # the original does not clip TD targets
     assert T.td3_config(p.override(td3_clip_targets=True)).target_range == pytest.approx((-100.0, 0.0))
+    up = T.mpc_config(p.override(mpc_upright_weight=10.0, mpc_upright_min=0.3))
+    assert (up.upright_weight, up.upright_min, up.quat_index) == (10.0, 0.3, 3)
+    assert T.mpc_config(p).upright_weight == 0.0          # off in the paper preset
     # the ant's integrator reaches the MuJoCo model; point-mass envs ignore it
     import mujoco
     env = T.make_env(p.override(ant_integrator="RK4"))
