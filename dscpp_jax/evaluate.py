@@ -116,14 +116,15 @@ def summarize(result: EvalResult, prefix: str = "eval/") -> Dict[str, float]:
     import numpy as np
     succ = np.asarray(result.success)
     steps = np.asarray(result.steps)
+    on_back = np.asarray(result.upright) < 0
     out = {
         f"{prefix}success_rate": float(succ.mean()),
         f"{prefix}steps_to_goal": float(steps[succ].mean()) if succ.any() else float("nan"),
         f"{prefix}chain_probability": float(result.chain_probability),
         f"{prefix}num_options": float(result.num_options),
         # why episodes fail: on its back at the end, option timeouts, time in the global option
-        f"{prefix}flipped_rate": float((np.asarray(result.upright) < 0).mean()),
-        f"{prefix}flipped_failures": float((~succ & (np.asarray(result.upright) < 0)).sum()),
+        f"{prefix}flipped_rate": float(on_back.mean()),
+        f"{prefix}flipped_failures": float((~succ & on_back).sum()),
         f"{prefix}option_failures_per_episode": float(np.asarray(result.option_failures).mean()),
         f"{prefix}global_option_share": float(np.asarray(result.global_steps).sum()
                                               / max(1, int(steps.sum()))),

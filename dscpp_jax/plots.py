@@ -4,7 +4,7 @@ metrics.csv for one or many runs (mean +- standard error; paper Figure 6, append
 from __future__ import annotations
 
 import os
-from typing import Sequence
+from typing import Optional, Sequence
 
 import numpy as np
 
@@ -45,8 +45,7 @@ def plot_trajectory(cfg, result, path: str, title: str = "", max_episodes: int =
     opt = np.asarray(result.option)       # (L, N)
     act = np.asarray(result.active)       # (L, N)
     succ_e = np.asarray(result.success).astype(bool)
-    upright = (np.asarray(result.upright) if getattr(result, "upright", None) is not None
-               else np.ones(succ_e.shape))
+    upright = np.asarray(result.upright)
     fails, wins = np.flatnonzero(~succ_e), np.flatnonzero(succ_e)
     n_f = min(len(fails), max(max_episodes // 2, max_episodes - len(wins)))
     drawn = list(fails[:n_f]) + list(wins[:max_episodes - n_f])
@@ -186,6 +185,15 @@ def _group_runs(run_dirs: Sequence[str]) -> dict:
     return groups
 
 
+def _split_label(entry: str) -> tuple[Optional[str], str]:
+    """"LABEL=RUN_DIR" -> (LABEL, RUN_DIR); a plain run directory -> (None, entry). The label may
+    hold "=", the path not (a directory whose own name has "=" stays a plain entry)."""
+    label, sep, run = str(entry).rpartition("=")
+    if sep and not os.path.isdir(str(entry)):
+        return label, run
+    return None, str(entry)
+
+
 def plot_curves(run_dirs: Sequence[str], path: str, group: bool = True) -> str:
     """Eval success from the start vs env steps, episodes and wall-clock, and the number of
     options and training-episode success vs env steps. Runs that differ only in the seed are
@@ -196,11 +204,11 @@ def plot_curves(run_dirs: Sequence[str], path: str, group: bool = True) -> str:
     labelled: dict[str, list[str]] = {}
     plain = []
     for r in run_dirs:
-        label, sep, run = str(r).rpartition("=")   # the label may hold "=", the path not
-        if sep and not os.path.isdir(str(r)):
+        label, run = _split_label(r)
+        if label is not None:
             labelled.setdefault(label, []).append(run)
         else:
-            plain.append(r)
+            plain.append(run)
     missing = [r for rs in labelled.values() for r in rs] + plain
     missing = [r for r in missing if not os.path.isdir(r)]
     if missing:
@@ -253,8 +261,7 @@ def plot_runs(run_dirs: Sequence[str], out_dir: str, with_state: bool = True) ->
         from dscpp_jax.cli import load_run
         from dscpp_jax.evaluate import evaluate
         for r in run_dirs:
-            _, sep, run = str(r).rpartition("=")
-            r = run if sep and not os.path.isdir(str(r)) else r
+            r = _split_label(r)[1]
             tag = "" if len(run_dirs) == 1 else os.path.basename(os.path.normpath(r)) + "_"
             cfg, state = load_run(r)
             _, res = evaluate(state, jax.random.PRNGKey(0), max(4, cfg.eval_episodes))
