@@ -1,5 +1,5 @@
 """Random-shooting MPC: eq. 2 cost against NumPy, rollouts against a NumPy MLP, the fused kernel
-(interpreted on the CPU) against the XLA path, the terminal value fused into the kernel against
+(interpreted on the CPU, compiled on a GPU) against the XLA path, the terminal value fused into the kernel against
 td3_value, and goal reaching on the point mass."""
 import dataclasses
 
@@ -17,6 +17,8 @@ from dscpp_jax.mpc import (MPCConfig, mpc_action, mpc_actions, mpc_cost, rollout
 from dscpp_jax.td3 import TD3Config, td3_init, td3_value
 
 TOL = 0.6
+# The Pallas kernel compiles on a GPU; elsewhere it runs in interpret mode.
+INTERPRET = jax.default_backend() != "gpu"
 
 
 def _np_cost(pred_xy, goal, values, gamma=0.95, tol=TOL):
@@ -99,8 +101,8 @@ def test_sequence_costs_match_numpy_rollout(mode):
     np.testing.assert_allclose(got, _np_cost(xy, goal[0], v), rtol=1e-4, atol=1e-4)
 
 
-def test_fused_kernel_interpreted_matches_xla_bf16():
-    """The Pallas kernel (interpreted on the CPU) computes what the XLA bfloat16 path computes."""
+def test_fused_kernel_matches_xla_bf16():
+    """The Pallas kernel (interpreted on the CPU, compiled on a GPU) computes what the XLA bfloat16 path computes."""
     dcfg, st = _tiny_model(E=2, obs_dim=29, act_dim=8)
     cfg = MPCConfig(num_samples=100, horizon=3, compute_dtype="bfloat16", block_rows=32, hidden_chunk=16,
                     out_chunk=16, ensemble_mode="member")
@@ -109,7 +111,7 @@ def test_fused_kernel_interpreted_matches_xla_bf16():
     acts = sample_action_sequences(jax.random.key(0), cfg, 2, 8)
     vf = lambda s, g: -jnp.linalg.norm(s[:, :2] - g, axis=-1) + 0.1 * s[:, 3]
     ref = sequence_costs(dataclasses.replace(cfg, backend="xla"), dcfg, st, obs, goal, acts, vf)
-    got = sequence_costs(cfg, dcfg, st, obs, goal, acts, vf, interpret=True)
+    got = sequence_costs(cfg, dcfg, st, obs, goal, acts, vf, interpret=INTERPRET)
     assert float(jnp.std(ref)) > 0.05  # costs differ between sequences
     np.testing.assert_allclose(got, ref, rtol=1e-3, atol=2e-3)
     f32 = sequence_costs(dataclasses.replace(cfg, backend="xla", compute_dtype="float32"), dcfg, st, obs, goal,
@@ -225,7 +227,7 @@ def test_jit_matches_eager_no_retrace_and_single_env_api():
         MPCConfig(ensemble_mode="median")
 
 
-def test_fused_kernel_ensemble_mean_interpreted_matches_xla():
+def test_fused_kernel_ensemble_mean_matches_xla():
     """Mean-of-members mode inside the kernel equals the XLA mean mode (both bf16 operands)."""
     dcfg, st = _tiny_model(E=3, obs_dim=29, act_dim=8)
     cfg = MPCConfig(num_samples=64, horizon=2, compute_dtype="bfloat16", block_rows=32, hidden_chunk=16,
@@ -234,7 +236,7 @@ def test_fused_kernel_ensemble_mean_interpreted_matches_xla():
     goal = obs[:, :2] + np.array([[0.4, 0.3]], np.float32)
     acts = sample_action_sequences(jax.random.key(1), cfg, 1, 8)
     ref = sequence_costs(dataclasses.replace(cfg, backend="xla"), dcfg, st, obs, goal, acts)
-    got = sequence_costs(cfg, dcfg, st, obs, goal, acts, interpret=True)
+    got = sequence_costs(cfg, dcfg, st, obs, goal, acts, interpret=INTERPRET)
     np.testing.assert_allclose(got, ref, atol=1e-5)
     member = sequence_costs(dataclasses.replace(cfg, backend="xla", ensemble_mode="member"), dcfg, st, obs,
                             goal, acts)
@@ -260,7 +262,7 @@ def test_value_net_fn_is_td3_value(output_normalisation):
     np.testing.assert_allclose(got, td3_value(tcfg, st, s, jnp.broadcast_to(g, (50, 2))), rtol=1e-6, atol=1e-6)
 
 
-def test_fused_value_interpreted_matches_td3_value_and_numpy():
+def test_fused_value_matches_td3_value_and_numpy():
     """The kernel's in-chip value (actor + twin critic on the final states) equals td3_value on the
     kernel's own final states, and its eq. 2 costs equal the XLA path and the NumPy reference."""
     dcfg, st = _tiny_model(E=1, obs_dim=29, act_dim=8)
@@ -276,9 +278,9 @@ def test_fused_value_interpreted_matches_td3_value_and_numpy():
     # Kernel outputs directly: value, at-goal flag against td3_value on the final states.
     fd = dynamics_fold(dcfg, st, jnp.bfloat16)
     acts_k = mpc_lib._to_kernel_layout(cfg, acts, 16, 64)
-    fused = mpc_lib._rollout_pallas(cfg, dcfg, fd, jnp.asarray(obs), jnp.asarray(goal), acts_k, interpret=True,
+    fused = mpc_lib._rollout_pallas(cfg, dcfg, fd, jnp.asarray(obs), jnp.asarray(goal), acts_k, interpret=INTERPRET,
                                     value_net=net, want_final=False)
-    plain = mpc_lib._rollout_pallas(cfg, dcfg, fd, jnp.asarray(obs), jnp.asarray(goal), acts_k, interpret=True)
+    plain = mpc_lib._rollout_pallas(cfg, dcfg, fd, jnp.asarray(obs), jnp.asarray(goal), acts_k, interpret=INTERPRET)
     final = plain["final"][:, :, :29]
     v_ref = jax.vmap(lambda s, g: td3_value(tcfg, ts, s, jnp.broadcast_to(g, (64, 2))))(final, jnp.asarray(goal))
     assert float(jnp.std(v_ref)) > 0.1
@@ -297,7 +299,7 @@ def test_fused_value_interpreted_matches_td3_value_and_numpy():
         np.testing.assert_allclose(got[b], _np_cost(np.asarray(xy[b]), goal[b], v), rtol=1e-4, atol=1e-4)
 
 
-def test_fused_value_bf16_and_output_normalisation_interpreted():
+def test_fused_value_bf16_and_output_normalisation():
     """bfloat16 value operands stay close to td3_value; the output-normalisation actor works in-kernel."""
     dcfg, st = _tiny_model(E=1, obs_dim=29, act_dim=8)
     tcfg, ts = _small_td3(output_normalisation=True)
@@ -308,13 +310,13 @@ def test_fused_value_bf16_and_output_normalisation_interpreted():
     goal = obs[:, :2] + np.array([[0.3, 0.2]], np.float32)
     acts = sample_action_sequences(jax.random.key(4), cfg, 1, 8)
     ref = sequence_costs(dataclasses.replace(cfg, backend="xla"), dcfg, st, obs, goal, acts, value_net_fn(net))
-    got = sequence_costs(cfg, dcfg, st, obs, goal, acts, interpret=True, value_net=net)
+    got = sequence_costs(cfg, dcfg, st, obs, goal, acts, interpret=INTERPRET, value_net=net)
     assert float(jnp.std(ref)) > 0.1
     np.testing.assert_allclose(got, ref, atol=0.02 * float(jnp.max(jnp.abs(ref))))
     assert float(jnp.max(jnp.abs(got - ref))) > 0  # the bf16 kernel value was used, not the XLA one
 
 
-def test_in_kernel_sampler_interpreted():
+def test_in_kernel_sampler():
     """The kernel's own draws equal _kernel_rng_actions (so the chosen first action is recovered
     exactly), and they look uniform on [-1, 1) with independent lanes, rows and steps."""
     dcfg, st = _tiny_model(E=1, obs_dim=29, act_dim=8)
@@ -324,12 +326,12 @@ def test_in_kernel_sampler_interpreted():
     seeds = mpc_lib._rng_seeds(jax.random.key(3), 2)
     fd = dynamics_fold(dcfg, st, jnp.bfloat16)
     acts = mpc_lib._kernel_rng_actions(seeds, 2, 32, 16, 8)
-    drawn = mpc_lib._rollout_pallas(cfg, dcfg, fd, obs, goal, seeds, interpret=True, want_final=False)
-    given = mpc_lib._rollout_pallas(cfg, dcfg, fd, obs, goal, acts, interpret=True, want_final=False)
+    drawn = mpc_lib._rollout_pallas(cfg, dcfg, fd, obs, goal, seeds, interpret=INTERPRET, want_final=False)
+    given = mpc_lib._rollout_pallas(cfg, dcfg, fd, obs, goal, acts, interpret=INTERPRET, want_final=False)
     np.testing.assert_array_equal(drawn["cost"], given["cost"])
     # State and action as one interleaved first-layer operand: the same function.
     joined = mpc_lib._rollout_pallas(dataclasses.replace(cfg, join_input=True), dcfg, fd, obs, goal, seeds,
-                                     interpret=True, want_final=False)
+                                     interpret=INTERPRET, want_final=False)
     np.testing.assert_allclose(joined["cost"], given["cost"], atol=1e-5)
     rows = jnp.asarray([[5], [20]])
     np.testing.assert_array_equal(mpc_lib._kernel_rng_actions(seeds, 2, 32, 16, 8, t=0, rows=rows)[:, 0],
@@ -375,7 +377,7 @@ def test_upright_cost_matches_numpy():
         MPCConfig(upright_weight=-1.0)
 
 
-def test_fused_kernel_interpreted_matches_xla_with_upright_cost():
+def test_fused_kernel_matches_xla_with_upright_cost():
     dcfg, st = _tiny_model(E=1, obs_dim=29, act_dim=8)
     cfg = MPCConfig(num_samples=64, horizon=3, compute_dtype="bfloat16", block_rows=32, hidden_chunk=16,
                     out_chunk=16, upright_weight=5.0, upright_min=0.9)
@@ -384,7 +386,7 @@ def test_fused_kernel_interpreted_matches_xla_with_upright_cost():
     acts = sample_action_sequences(jax.random.key(1), cfg, 2, 8)
     vf = lambda s, g: -jnp.linalg.norm(s[:, :2] - g, axis=-1)
     ref = sequence_costs(dataclasses.replace(cfg, backend="xla"), dcfg, st, obs, goal, acts, vf)
-    got = sequence_costs(cfg, dcfg, st, obs, goal, acts, vf, interpret=True)
+    got = sequence_costs(cfg, dcfg, st, obs, goal, acts, vf, interpret=INTERPRET)
     plain = sequence_costs(dataclasses.replace(cfg, backend="xla", upright_weight=0.0), dcfg, st, obs,
                            goal, acts, vf)
     assert float(jnp.max(jnp.abs(ref - plain))) > 0.1   # the tilt term is active
