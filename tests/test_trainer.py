@@ -45,9 +45,11 @@ def test_presets_keep_paper_constants():
     assert T.mpc_config(p).upright_weight == 0.0          # off in the paper preset
     # the ant's integrator reaches the MuJoCo model; point-mass envs ignore it
     import mujoco
-    env = T.make_env(p.override(ant_integrator="RK4"))
-    assert env.mj_model.opt.integrator == mujoco.mjtIntegrator.mjINT_RK4
-    assert T.make_env(p).mj_model.opt.integrator == mujoco.mjtIntegrator.mjINT_EULER
+    assert T.make_env(p).mj_model.opt.integrator == mujoco.mjtIntegrator.mjINT_RK4   # D4RL's
+    env = T.make_env(p.override(ant_integrator="Euler"))
+    assert env.mj_model.opt.integrator == mujoco.mjtIntegrator.mjINT_EULER
+    assert preset("fast", "u_maze").ant_integrator == "RK4"
+    assert preset("fast", "four_rooms").ant_integrator == "Euler"   # its RK4 run is not measured
     assert T.make_env(preset("fast", "point_u_maze", ant_integrator="RK4")).backend != "mjx"
 
 
@@ -233,6 +235,7 @@ def test_every_algorithm_trains_and_evaluates(algo, subgoal):
 def test_nan_physics_ends_that_episode_and_stays_out_of_learning():
     # ant U-maze (MJX, few steps): one environment's physics state is corrupted with NaN
     cfg = preset("fast", "u_maze", "mb_dscpp", num_envs=2, steps_per_iter=3, warmup_episodes=0,
+                 ant_integrator="Euler",
                  episode_length=50, max_options=4, max_pos_traj=4, max_neg=4, buffer_len=10,
                  option_timeout=20, td3_hidden=16, td3_batch_size=8, replay_capacity=100,
                  model_capacity=100, dyn_hidden=16, dyn_batch_size=8, dyn_pretrain_steps=1,
