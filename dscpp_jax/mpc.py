@@ -773,6 +773,15 @@ def _values(value_fn, final_states, goal, precision=None):
     return v
 
 
+def _xla_sequence_costs(mpc_cfg, dyn_cfg, dyn_state, obs, goal, actions, value_fn, value_net):
+    """The XLA back end of `sequence_costs`: rollout, terminal values, eq. 2 cost (B, M)."""
+    fd = dynamics_fold(dyn_cfg, dyn_state)
+    xy, final, up = _rollout_xla(mpc_cfg, dyn_cfg, fd, obs, actions)
+    v = (_values(_value_callable(value_fn, value_net), final, goal, mpc_cfg.value_precision)
+         if mpc_cfg.use_value else None)
+    return mpc_cost(mpc_cfg, xy, goal, v, up)
+
+
 def sequence_costs(mpc_cfg: MPCConfig, dyn_cfg: DynamicsConfig, dyn_state: DynamicsState, obs, goal, actions,
                    value_fn: Optional[Callable] = None, interpret: bool = False,
                    value_net: Optional[ValueNet] = None):
@@ -786,11 +795,7 @@ def sequence_costs(mpc_cfg: MPCConfig, dyn_cfg: DynamicsConfig, dyn_state: Dynam
     backend = _resolve_backend(mpc_cfg, dyn_cfg) if not interpret else "pallas"
     B, M = actions.shape[:2]
     if backend == "xla":
-        fd = dynamics_fold(dyn_cfg, dyn_state)
-        xy, final, up = _rollout_xla(mpc_cfg, dyn_cfg, fd, obs, actions)
-        v = (_values(_value_callable(value_fn, value_net), final, goal, mpc_cfg.value_precision)
-             if mpc_cfg.use_value else None)
-        return mpc_cost(mpc_cfg, xy, goal, v, up)
+        return _xla_sequence_costs(mpc_cfg, dyn_cfg, dyn_state, obs, goal, actions, value_fn, value_net)
     _check_pallas(mpc_cfg, dyn_cfg)
     fd = dynamics_fold(dyn_cfg, dyn_state, jnp.bfloat16)
     SP, AP, HP, BM, Mp = _kernel_dims(mpc_cfg, obs.shape[-1], actions.shape[-1], fd.w_s.shape[2])
@@ -839,11 +844,7 @@ def mpc_actions(mpc_cfg: MPCConfig, dyn_cfg: DynamicsConfig, dyn_state: Dynamics
     backend = _resolve_backend(mpc_cfg, dyn_cfg)
     if backend == "xla":
         actions = sample_action_sequences(key, mpc_cfg, B, act_dim)
-        fd = dynamics_fold(dyn_cfg, dyn_state)
-        xy, final, up = _rollout_xla(mpc_cfg, dyn_cfg, fd, obs, actions)
-        v = (_values(_value_callable(value_fn, value_net), final, goal, mpc_cfg.value_precision)
-             if mpc_cfg.use_value else None)
-        cost = mpc_cost(mpc_cfg, xy, goal, v, up)
+        cost = _xla_sequence_costs(mpc_cfg, dyn_cfg, dyn_state, obs, goal, actions, value_fn, value_net)
         first = actions[:, :, 0, :]
     else:
         _check_pallas(mpc_cfg, dyn_cfg)
