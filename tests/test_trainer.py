@@ -49,7 +49,8 @@ def test_presets_keep_paper_constants():
     env = T.make_env(p.override(ant_integrator="Euler"))
     assert env.mj_model.opt.integrator == mujoco.mjtIntegrator.mjINT_EULER
     assert preset("fast", "u_maze").ant_integrator == "RK4"
-    assert preset("fast", "four_rooms").ant_integrator == "Euler"   # its RK4 run is not measured
+    assert preset("fast", "four_rooms").ant_integrator == "RK4"
+    assert preset("paper", "four_rooms").ant_integrator == "RK4"
     assert T.make_env(preset("fast", "point_u_maze", ant_integrator="RK4")).backend != "mjx"
 
 
