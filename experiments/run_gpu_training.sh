@@ -14,6 +14,7 @@
 # EXTRA is appended to every fresh run's command line (e.g. EXTRA="--set max_options=20"), and
 # ARGS_<TAG> to the fresh runs of jobs tagged TAG (e.g. ARGS_b1k="--set td3_batch_size=1024");
 # a tagged job's run and results are named <env>_<algo>_<tag>; BUDGET_<TAG> overrides BUDGET for it.
+# Stopped by a signal (e.g. `timeout`), it still packs results.tgz from what the jobs have written.
 set -uo pipefail
 ENV=${ENV:-u_maze}
 BUDGET=${BUDGET:-420}
@@ -62,13 +63,37 @@ run_job() {  # gpu env algo [tag]
   if [ "$EVAL_EPISODES" -gt 0 ]; then  # 0: no separate evaluation (e.g. a chunk to be resumed)
     python -m dscpp_jax.cli eval --run "$run" --episodes "$EVAL_EPISODES" > "$dest/eval.log" 2>&1
   fi
-  cp "$run/metrics.csv" "$run/config.json" "$run/eval.json" "$dest/" 2>/dev/null
-  cp "$run/plots/trajectory.png" "$run/plots/classifiers.png" "$run/eval_trajectory.png" "$dest/" \
-    2>/dev/null
+  collect "$run" "$dest"
   grep -v -e "warp" -e "^WARNING" "$dest/train.log" | tail -n 4 | sed "s/^/[$name] /"
 }
 
+collect() {  # run_dir dest: copy a run's results next to its logs
+  cp "$1/metrics.csv" "$1/config.json" "$1/eval.json" "$2/" 2>/dev/null
+  cp "$1/plots/trajectory.png" "$1/plots/classifiers.png" "$1/eval_trajectory.png" "$2/" 2>/dev/null
+}
+
+pack() {  # everything under $OUT into $OUT/results.tgz
+  local tmp_tgz
+  tmp_tgz=$(mktemp --suffix .tgz) && tar czf "$tmp_tgz" -C "$OUT" --exclude results.tgz . \
+    && mv "$tmp_tgz" "$OUT/results.tgz"
+}
+
+# Stopped early (e.g. by `timeout`): stop the jobs, keep what they have written so far (a run
+# continues from its last checkpoint when the same job runs again).
 pids=()
+on_stop() {
+  echo "stopped: packing the results written so far"
+  for p in "${pids[@]}"; do pkill -TERM -P "$p"; kill "$p"; done 2>/dev/null
+  for j in $JOBS; do
+    IFS=: read -r _ e a t <<< "$j"
+    n=$(name_of "$e" "$a" "$t")
+    collect "runs/gpu_$n" "$OUT/$n"
+  done
+  pack
+  exit 124
+}
+trap on_stop TERM INT
+
 if [ "$SERIAL" = 1 ]; then
   for g in "${!per_gpu[@]}"; do
     (
@@ -103,5 +128,5 @@ for j in $JOBS; do
   python3 -c "import json,sys; d=json.load(open(sys.argv[1])); print(sys.argv[2], {k: round(v, 3) if isinstance(v, float) else v for k, v in d.items() if '/' not in k or k in ('eval/success_rate', 'eval/steps_to_goal', 'eval/num_options', 'eval/flipped_rate', 'eval/flipped_failures', 'eval/option_failures_per_episode', 'eval/global_option_share')})" \
     "runs/gpu_$n/eval.json" "$n" 2>/dev/null
 done
-tmp_tgz=$(mktemp --suffix .tgz) && tar czf "$tmp_tgz" -C "$OUT" --exclude results.tgz . && mv "$tmp_tgz" "$OUT/results.tgz"
+pack
 ls -la "$OUT"
