@@ -68,6 +68,9 @@ class Config:
     td3_lr: float = -1.0               # < 0: the algorithm's preset (1e-5 model based, 3e-4 free)
     td3_clip_targets: bool = False     # clip TD targets to [-1 / (1 - discount), 0], the range of
                                        # every value under the 0 / -1 reward (not in the original)
+    td3_absorb_fallen: bool = False    # ant: a transition into a state on its back (upright < 0)
+                                       # gets the value of never reaching the goal,
+                                       # -1 / (1 - discount) (her.absorb_failures; not in the original)
     discount: float = 0.99
     replay_capacity: int = 1_000_000
     her_strategy: str = "final"        # final | future | none
@@ -212,6 +215,12 @@ class Config:
         need(self.mpc_upright_weight == 0 or not self.env.startswith("point_"),
              "mpc_upright_weight needs a body that can tip over (the ant envs); the point mass has "
              "no orientation: set it to 0")
+        need(not self.td3_absorb_fallen or not self.env.startswith("point_"),
+             "td3_absorb_fallen needs a body that can tip over (the ant envs); the point mass "
+             "cannot fall: set it to false")
+        need(not self.td3_absorb_fallen or self.discount < 1.0,
+             "td3_absorb_fallen needs discount < 1 (with discount 1 a fallen state's value is "
+             "unbounded); lower discount or set td3_absorb_fallen=false")
         need(self.ant_integrator in ("Euler", "RK4", "implicitfast"),
              f"ant_integrator must be Euler, RK4 or implicitfast, got {self.ant_integrator!r}")
         for name in ("mpc_backend", "svm_backend"):

@@ -122,3 +122,22 @@ def her_sample(
     return her_relabel(
         buf, rows, envs, u_future, u_relabel, strategy, relabel_prob, max_segment, goal_tolerance
     )
+
+
+def absorb_failures(batch: Transition, failed: jax.Array, discount: float) -> Transition:
+    """Treat transitions into a failed state (e.g. the ant on its back) as absorbing.
+
+    Not in the paper. A body that has tipped over can no longer reach any goal, so the true value
+    of such a state under the 0 / -1 reward is that of never reaching the goal,
+    ``-1 / (1 - discount)``. Left to bootstrap, the critic learns it slowly, and hindsight goals
+    that the body still "reaches" while it wriggles on its back teach it the opposite. Here every
+    transition whose ``next_obs`` is ``failed`` (shape ``(B,)``) and does not reach its goal gets
+    reward ``-1 / (1 - discount)`` and continuation 0, so its TD target is exactly that value.
+    Transitions that reach their goal keep reward 0 (the task counts them as successes).
+    """
+    if not 0.0 <= discount < 1.0:
+        raise ValueError(f"absorb_failures: discount must be in [0, 1), got {discount}")
+    hit = jnp.asarray(failed, bool) & (batch.discount > 0)
+    never = jnp.float32(-1.0 / (1.0 - discount))
+    return batch.replace(reward=jnp.where(hit, never, batch.reward).astype(batch.reward.dtype),
+                         discount=jnp.where(hit, 0.0, batch.discount).astype(batch.discount.dtype))

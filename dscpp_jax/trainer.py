@@ -364,14 +364,8 @@ def _learn(state: TrainState, key) -> Tuple[TrainState, Dict[str, jax.Array]]:
     tcfg = td3_config(config)
     k_td3, k_dyn, k_pre = jax.random.split(key, 3)
     metrics: Dict[str, jax.Array] = {}
-    max_seg = config.option_timeout if config.hierarchical else config.episode_length
-
-    def sample_fn(k, buf, n):
-        return _her_sample(k, buf, n, strategy=config.her_strategy,
-                                 relabel_prob=config.her_relabel_prob, max_segment=max_seg,
-                                 goal_tolerance=config.goal_tolerance)
-
-    td3, tm = td3_updates(tcfg, state.td3, state.replay, k_td3, config.td3_updates, sample_fn)
+    td3, tm = td3_updates(tcfg, state.td3, state.replay, k_td3, config.td3_updates,
+                          td3_sample_fn(config, env))
     metrics.update({f"td3/{k}": v for k, v in tm.items()})
     finite = {"td3": _all_finite(td3)}
     dyn = state.dyn
@@ -433,6 +427,24 @@ train_step = jax.jit(train_step_impl)
 # ------------------------------------------------------------------------------------------------
 # Thin adapters over the component modules (one place to follow their signatures)
 # ------------------------------------------------------------------------------------------------
+def td3_sample_fn(config: Config, env) -> Any:
+    """``sample_fn(key, replay, n) -> Transition`` for TD3: HER relabelling within an option's
+    segment (the episode's for the flat algorithms), and with ``td3_absorb_fallen`` the ant's
+    falls made absorbing (:func:`dscpp_jax.her.absorb_failures`)."""
+    max_seg = config.option_timeout if config.hierarchical else config.episode_length
+
+    def sample_fn(k, buf, n):
+        batch = _her_sample(k, buf, n, strategy=config.her_strategy,
+                            relabel_prob=config.her_relabel_prob, max_segment=max_seg,
+                            goal_tolerance=config.goal_tolerance)
+        if config.td3_absorb_fallen:
+            from dscpp_jax.her import absorb_failures
+            batch = absorb_failures(batch, env.upright(batch.next_obs) < 0, config.discount)
+        return batch
+
+    return sample_fn
+
+
 def _her_sample(key, buf, n, **kw):
     from dscpp_jax.her import her_sample
     return her_sample(key, buf, n, **kw)

@@ -215,3 +215,35 @@ def test_her_sample_draws_valid_entries_and_consistent_rewards():
         tr2 = her_sample(jax.random.key(3), buf, 512, "future", 0.8, 200)  # one op-by-op pass
     for a, b in zip(jax.tree_util.tree_leaves(tr), jax.tree_util.tree_leaves(tr2)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_absorb_failures_gives_fallen_transitions_the_never_reach_value():
+    from dscpp_jax.her import absorb_failures
+    from dscpp_jax.replay import Transition
+    from dscpp_jax.td3 import TD3Config, td3_init, td3_targets
+    rng = np.random.default_rng(7)
+    n, gamma = 64, 0.99
+    reached = rng.random(n) < 0.3
+    failed = rng.random(n) < 0.4
+    batch = Transition(obs=jnp.asarray(rng.normal(size=(n, OBS)), jnp.float32),
+                       action=jnp.asarray(rng.uniform(-1, 1, (n, ACT)), jnp.float32),
+                       reward=jnp.asarray(np.where(reached, 0.0, -1.0), jnp.float32),
+                       next_obs=jnp.asarray(rng.normal(size=(n, OBS)), jnp.float32),
+                       goal=jnp.asarray(rng.normal(size=(n, GOAL)), jnp.float32),
+                       discount=jnp.asarray(1.0 - reached, jnp.float32))
+    out = jax.jit(absorb_failures, static_argnums=2)(batch, jnp.asarray(failed), gamma)
+    hit = failed & ~reached
+    assert hit.any() and (failed & reached).any() and (~failed).any()   # every case is present
+    np.testing.assert_array_equal(np.asarray(out.reward), np.where(hit, -100.0, np.asarray(batch.reward)))
+    np.testing.assert_array_equal(np.asarray(out.discount), np.where(hit, 0.0, 1.0 - reached))
+    for k in ("obs", "action", "next_obs", "goal"):
+        np.testing.assert_array_equal(np.asarray(getattr(out, k)), np.asarray(getattr(batch, k)))
+    # through TD3: a fallen transition's target is exactly -1 / (1 - gamma), the rest unchanged
+    cfg = TD3Config.model_free(hidden=(16, 16), discount=gamma)
+    st = td3_init(jax.random.key(0), OBS, GOAL, ACT, cfg)
+    noise = jnp.zeros((n, ACT))
+    y0, y1 = (np.asarray(td3_targets(cfg, st, b, noise)) for b in (batch, out))
+    np.testing.assert_allclose(y1[hit], -1.0 / (1.0 - gamma), rtol=1e-6)
+    np.testing.assert_array_equal(y1[~hit], y0[~hit])
+    with pytest.raises(ValueError, match="discount must be in"):
+        absorb_failures(batch, jnp.asarray(failed), 1.0)

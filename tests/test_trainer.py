@@ -24,6 +24,8 @@ def test_invalid_configs_fail_before_compiling():
         Config(td3_clip_targets=True, discount=1.0).validate()
     with pytest.raises(ValueError, match="the point mass has no orientation"):
         Config(env="point_u_maze", mpc_upright_weight=10.0).validate()
+    with pytest.raises(ValueError, match="the point mass cannot fall"):
+        Config(env="point_u_maze", td3_absorb_fallen=True).validate()
     with pytest.raises(ValueError, match="ant_integrator must be Euler, RK4 or implicitfast"):
         Config(env="u_maze", ant_integrator="rk4").validate()
     with pytest.raises(ValueError, match="unknown config field"):
@@ -52,6 +54,32 @@ def test_presets_keep_paper_constants():
     assert preset("fast", "four_rooms").ant_integrator == "RK4"
     assert preset("paper", "four_rooms").ant_integrator == "RK4"
     assert T.make_env(preset("fast", "point_u_maze", ant_integrator="RK4")).backend != "mjx"
+
+
+def test_td3_batches_make_the_ants_falls_absorbing_when_asked():
+    from dscpp_jax.replay import TrajStep, replay_add, replay_init
+    cfg = preset("fast", "u_maze", "mf_dscpp", td3_absorb_fallen=True)
+    env = T.make_env(cfg)
+    n_obs, n_act, steps, envs_ = int(env.observation_size), int(env.action_size), 20, 4
+    rng = np.random.default_rng(0)
+    fallen = rng.random((steps, envs_)) < 0.5
+    buf = replay_init(TrajStep(jnp.zeros(n_obs), jnp.zeros(n_act), jnp.zeros(n_obs), jnp.zeros(2),
+                               jnp.zeros((), jnp.int32)), steps * envs_, envs_)
+    for t in range(steps):
+        nxt = np.zeros((envs_, n_obs), np.float32)
+        nxt[:, 0] = 100.0 + t                                   # far from every goal
+        nxt[:, 3:7] = np.where(fallen[t][:, None], [0.0, 1.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0])
+        buf = replay_add(buf, TrajStep(jnp.zeros((envs_, n_obs)), jnp.zeros((envs_, n_act)),
+                                       jnp.asarray(nxt), jnp.zeros((envs_, 2)),
+                                       jnp.zeros(envs_, jnp.int32)))
+    for absorb in (True, False):
+        c = cfg.override(td3_absorb_fallen=absorb, her_relabel_prob=0.0)
+        b = jax.jit(T.td3_sample_fn(c, env), static_argnums=2)(jax.random.key(1), buf, 256)
+        on_back = np.asarray(env.upright(b.next_obs)) < 0
+        assert 0 < on_back.mean() < 1
+        want = np.where(on_back & absorb, -100.0, -1.0)
+        np.testing.assert_allclose(np.asarray(b.reward), want, rtol=1e-6)
+        np.testing.assert_array_equal(np.asarray(b.discount), np.where(on_back & absorb, 0.0, 1.0))
 
 
 def test_no_retracing_across_iterations():
