@@ -17,6 +17,9 @@ Strategies (the relabelled goal is an achieved xy, ``next_obs[..., :goal_dim]``)
 Reward and continuation are recomputed for the (possibly new) goal: reward 0 within
 ``goal_tolerance`` of the goal else -1; ``discount`` 0 only when the goal is reached (time-outs and
 segment ends bootstrap).
+
+:func:`absorb_failures` (optional, not in the paper) then gives transitions into a failed state,
+such as the ant on its back, the value of never reaching a goal.
 """
 from __future__ import annotations
 
