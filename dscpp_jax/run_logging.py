@@ -7,6 +7,7 @@ import json
 import math
 import os
 import platform
+import subprocess
 import sys
 from typing import Any, Mapping
 
@@ -14,8 +15,14 @@ BASE_COLUMNS = ("iteration", "env_steps", "episodes", "wall_clock")
 
 
 def library_versions() -> dict[str, str]:
-    """Versions of the libraries a run depends on (for config.json)."""
-    out = {"python": sys.version.split()[0], "platform": platform.platform()}
+    """Versions of the libraries a run depends on (for config.json), the source's git commit when
+    it runs from a checkout (``+dirty`` with uncommitted changes), and ``XLA_FLAGS``, which can
+    change numerics (e.g. ``--xla_gpu_deterministic_ops=true``)."""
+    out = {"python": sys.version.split()[0], "platform": platform.platform(),
+           "xla_flags": os.environ.get("XLA_FLAGS", "")}
+    commit = _git_commit(os.path.abspath(__file__))
+    if commit:
+        out["dscpp_jax_git"] = commit
     for mod in ("jax", "jaxlib", "flax", "optax", "chex", "orbax.checkpoint", "brax", "mujoco",
                 "numpy", "dscpp_jax"):
         try:
@@ -30,6 +37,21 @@ def library_versions() -> dict[str, str]:
     except Exception:  # noqa: BLE001
         pass
     return out
+
+
+def _git_commit(source_file: str) -> str:
+    """HEAD of the git checkout that tracks ``source_file`` (with ``+dirty`` if tracked files
+    changed), or "" when it is not tracked by one (an installed copy) or git is missing."""
+    def git(*args: str) -> str:
+        return subprocess.run(["git", "-C", os.path.dirname(source_file), *args],
+                              capture_output=True, text=True, timeout=10, check=True).stdout.strip()
+    try:
+        git("ls-files", "--error-unmatch", source_file)  # fails unless this checkout tracks it
+        head = git("rev-parse", "HEAD")
+        dirty = git("status", "--porcelain", "--untracked-files=no")
+    except (OSError, subprocess.SubprocessError):
+        return ""
+    return head + ("+dirty" if dirty else "")
 
 
 def write_config(run_dir: str, config_dict: Mapping[str, Any], extra: Mapping[str, Any] | None = None

@@ -33,6 +33,7 @@ def test_cli_train_resume_interrupt_eval_plot(tmp_path, monkeypatch, capsys):
     assert rc == 0
     cfg = json.load(open(os.path.join(run, "config.json")))
     assert cfg["config"]["algo"] == "mb_dscpp" and "jax" in cfg["versions"]
+    assert "xla_flags" in cfg["versions"]
     # the env's own constants are recorded too (physics settings of the ant, for instance)
     assert cfg["env"]["episode_length"] == cfg["config"]["episode_length"]
     m = read_metrics(run)
@@ -179,3 +180,32 @@ def test_plot_curves_takes_labels(tmp_path):
     assert "before (n=1)" in seen and "after, x=1 (n=2)" in seen
     with pytest.raises(ValueError, match="not a run directory"):
         plot_curves([f"a={tmp_path / 'nope'}"], str(tmp_path / "d.png"))
+
+
+def test_config_records_the_git_commit_only_of_a_checkout_that_tracks_the_source(tmp_path):
+    """config.json's `dscpp_jax_git`: HEAD (+dirty once a tracked file changes) of the checkout
+    that tracks the source file, nothing for a copy outside one."""
+    import shutil
+    import subprocess
+
+    from dscpp_jax.run_logging import _git_commit
+    if shutil.which("git") is None:
+        pytest.skip("git is not installed")
+
+    def git(*args):
+        return subprocess.run(["git", "-C", str(tmp_path), "-c", "user.name=t", "-c",
+                               "user.email=t@t", *args], capture_output=True, text=True,
+                              check=True).stdout.strip()
+    src = tmp_path / "mod.py"
+    src.write_text("x = 1\n")
+    git("init", "-q")
+    assert _git_commit(str(src)) == ""  # untracked
+    git("add", "mod.py")
+    git("commit", "-q", "-m", "init")
+    head = git("rev-parse", "HEAD")
+    assert _git_commit(str(src)) == head
+    src.write_text("x = 2\n")
+    assert _git_commit(str(src)) == head + "+dirty"
+    outside = tmp_path.parent / "outside_mod.py"
+    outside.write_text("x = 1\n")
+    assert _git_commit(str(outside)) == ""
