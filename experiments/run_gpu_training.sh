@@ -82,6 +82,7 @@ pack() {  # everything under $OUT into $OUT/results.tgz
 # continues from its last checkpoint when the same job runs again).
 pids=()
 on_stop() {
+  trap '' TERM INT  # handle a stop once, even if another signal arrives while packing
   echo "stopped: packing the results written so far"
   for p in "${pids[@]}"; do pkill -TERM -P "$p"; kill "$p"; done 2>/dev/null
   for j in $JOBS; do
