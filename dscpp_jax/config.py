@@ -71,6 +71,10 @@ class Config:
     td3_absorb_fallen: bool = False    # ant: a transition into a state on its back (upright < 0)
                                        # gets the value of never reaching the goal,
                                        # -1 / (1 - discount) (her.absorb_failures; not in the original)
+    td3_upright_weight: float = 0.0    # ant: TD3 reward - W * max(0, td3_upright_min - upright(s'))
+    td3_upright_min: float = 0.5       # per step (her.tilt_penalty; 0: off, not in the original)
+    td3_action_l2: float = 0.0         # actor loss + L2 * mean(a^2) (OpenAI Baselines' HER: 1.0;
+                                       # 0: off, as in the original)
     discount: float = 0.99
     replay_capacity: int = 1_000_000
     her_strategy: str = "final"        # final | future | none
@@ -221,6 +225,12 @@ class Config:
         need(not self.td3_absorb_fallen or self.discount < 1.0,
              "td3_absorb_fallen needs discount < 1 (with discount 1 a fallen state's value is "
              "unbounded); lower discount or set td3_absorb_fallen=false")
+        need(self.td3_upright_weight >= 0 and -1.0 <= self.td3_upright_min <= 1.0,
+             "td3_upright_weight must be >= 0 and td3_upright_min in [-1, 1]")
+        need(self.td3_upright_weight == 0 or not self.env.startswith("point_"),
+             "td3_upright_weight needs a body that can tip over (the ant envs); the point mass "
+             "cannot tilt: set it to 0")
+        need(self.td3_action_l2 >= 0, "td3_action_l2 must be >= 0 (0: off)")
         need(self.ant_integrator in ("Euler", "RK4", "implicitfast"),
              f"ant_integrator must be Euler, RK4 or implicitfast, got {self.ant_integrator!r}")
         for name in ("mpc_backend", "svm_backend"):

@@ -144,3 +144,21 @@ def absorb_failures(batch: Transition, failed: jax.Array, discount: float) -> Tr
     never = jnp.float32(-1.0 / (1.0 - discount))
     return batch.replace(reward=jnp.where(hit, never, batch.reward).astype(batch.reward.dtype),
                          discount=jnp.where(hit, 0.0, batch.discount).astype(batch.discount.dtype))
+
+
+def tilt_penalty(batch: Transition, upright: jax.Array, weight: float,
+                 upright_min: float = 0.5) -> Transition:
+    """Charge ``weight * max(0, upright_min - upright)`` per transition on top of the task reward.
+
+    Not in the paper. ``upright`` (shape ``(B,)``) is the uprightness of ``next_obs``: the world z
+    of the body's z axis, 1 upright and -1 on its back. A tilted step costs more than the task's
+    -1, so the critic ranks actions that tip the body below those that keep it on its feet, well
+    before it has fallen. Continuation flags are unchanged; a transition that reaches its goal
+    while tilted pays the penalty too. The values then lie in
+    ``[-(1 + weight * (1 + upright_min)) / (1 - discount), 0]``.
+    """
+    if weight < 0 or not -1.0 <= upright_min <= 1.0:
+        raise ValueError(f"tilt_penalty: weight must be >= 0 and upright_min in [-1, 1], got "
+                         f"{weight}, {upright_min}")
+    tilt = jnp.maximum(jnp.float32(upright_min) - jnp.asarray(upright, jnp.float32), 0.0)
+    return batch.replace(reward=(batch.reward - jnp.float32(weight) * tilt).astype(batch.reward.dtype))

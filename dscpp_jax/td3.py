@@ -64,6 +64,10 @@ class TD3Config:
     # lies in [-1 / (1 - discount), 0]; clipping there (as HER implementations do) stops the
     # critic from bootstrapping off values that no policy can have.
     target_range: Optional[Tuple[float, float]] = None
+    # Weight of an L2 penalty on the actor's actions, ``action_l2 * mean((pi(s, g) / max_action)^2)``
+    # added to the actor loss (0: off, as in the original). OpenAI Baselines' HER uses 1.0: it keeps
+    # the deterministic policy off its saturated, bang-bang corners.
+    action_l2: float = 0.0
 
     def __post_init__(self):
         object.__setattr__(self, "hidden", tuple(int(h) for h in self.hidden))
@@ -83,6 +87,8 @@ class TD3Config:
             raise ValueError(f"TD3Config.tau must be in [0, 1], got {self.tau}")
         if not 0.0 <= self.discount <= 1.0:
             raise ValueError(f"TD3Config.discount must be in [0, 1], got {self.discount}")
+        if not self.action_l2 >= 0.0:
+            raise ValueError(f"TD3Config.action_l2 must be >= 0, got {self.action_l2}")
         for name in ("random_action_prob", "random_action_prob_start"):
             p = getattr(self, name)
             if not 0.0 <= p <= 1.0:
@@ -274,7 +280,10 @@ def td3_update(
 
         def actor_loss_fn(params):
             a = _pi(cfg, params, batch.obs, batch.goal)
-            return -jnp.mean(_q(cfg, critic_params, batch.obs, batch.goal, a)[0])
+            loss = -jnp.mean(_q(cfg, critic_params, batch.obs, batch.goal, a)[0])
+            if cfg.action_l2 > 0:
+                loss = loss + cfg.action_l2 * jnp.mean(jnp.square(a / cfg.max_action))
+            return loss
 
         loss, g = jax.value_and_grad(actor_loss_fn)(actor_params)
         upd, actor_opt_state = _actor_tx(cfg).update(g, actor_opt_state, actor_params)

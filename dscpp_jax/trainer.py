@@ -98,9 +98,11 @@ def td3_config(config: Config) -> TD3Config:
     kw = dict(batch_size=config.td3_batch_size, hidden=(config.td3_hidden, config.td3_hidden),
               discount=config.discount, exploration_noise=config.action_noise,
               replay_capacity=config.replay_capacity,
-              actor_lr=config.effective_td3_lr, critic_lr=config.effective_td3_lr)
-    if config.td3_clip_targets:
-        kw.update(target_range=(-1.0 / (1.0 - config.discount), 0.0))
+              actor_lr=config.effective_td3_lr, critic_lr=config.effective_td3_lr,
+              action_l2=config.td3_action_l2)
+    if config.td3_clip_targets:   # the value range under the reward (tilt penalty included)
+        worst = 1.0 + config.td3_upright_weight * (1.0 + config.td3_upright_min)
+        kw.update(target_range=(-worst / (1.0 - config.discount), 0.0))
     if config.random_action_prob >= 0:
         kw.update(random_action_prob=config.random_action_prob)
         if config.model_based:
@@ -429,7 +431,8 @@ train_step = jax.jit(train_step_impl)
 # ------------------------------------------------------------------------------------------------
 def td3_sample_fn(config: Config, env) -> Any:
     """``sample_fn(key, replay, n) -> Transition`` for TD3: HER relabelling within an option's
-    segment (the episode's for the flat algorithms), and with ``td3_absorb_fallen`` the ant's
+    segment (the episode's for the flat algorithms), with ``td3_upright_weight`` the ant's tilt
+    charged per step (:func:`dscpp_jax.her.tilt_penalty`), and with ``td3_absorb_fallen`` its
     falls made absorbing (:func:`dscpp_jax.her.absorb_failures`)."""
     max_seg = config.option_timeout if config.hierarchical else config.episode_length
 
@@ -437,6 +440,10 @@ def td3_sample_fn(config: Config, env) -> Any:
         batch = _her_sample(k, buf, n, strategy=config.her_strategy,
                             relabel_prob=config.her_relabel_prob, max_segment=max_seg,
                             goal_tolerance=config.goal_tolerance)
+        if config.td3_upright_weight > 0:
+            from dscpp_jax.her import tilt_penalty
+            batch = tilt_penalty(batch, env.upright(batch.next_obs), config.td3_upright_weight,
+                                 config.td3_upright_min)
         if config.td3_absorb_fallen:
             from dscpp_jax.her import absorb_failures
             batch = absorb_failures(batch, env.upright(batch.next_obs) < 0, config.discount)

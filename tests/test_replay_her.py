@@ -247,3 +247,23 @@ def test_absorb_failures_gives_fallen_transitions_the_never_reach_value():
     np.testing.assert_array_equal(y1[~hit], y0[~hit])
     with pytest.raises(ValueError, match="discount must be in"):
         absorb_failures(batch, jnp.asarray(failed), 1.0)
+
+
+def test_tilt_penalty_charges_tilt_below_the_threshold_like_numpy():
+    from dscpp_jax.her import tilt_penalty
+    from dscpp_jax.replay import Transition
+    rng = np.random.default_rng(3)
+    n = 64
+    up = rng.uniform(-1, 1, n).astype(np.float32)
+    reward = np.where(rng.random(n) < 0.3, 0.0, -1.0).astype(np.float32)
+    batch = Transition(obs=jnp.zeros((n, OBS)), action=jnp.zeros((n, ACT)), reward=jnp.asarray(reward),
+                       next_obs=jnp.zeros((n, OBS)), goal=jnp.zeros((n, GOAL)),
+                       discount=jnp.asarray(reward != 0, jnp.float32))
+    out = jax.jit(tilt_penalty, static_argnums=(2, 3))(batch, jnp.asarray(up), 2.0, 0.5)
+    want = reward - 2.0 * np.maximum(0.5 - up, 0.0)
+    assert (up > 0.5).any() and (up < 0.5).any()
+    np.testing.assert_allclose(np.asarray(out.reward), want, rtol=1e-6)
+    np.testing.assert_array_equal(np.asarray(out.discount), np.asarray(batch.discount))
+    assert np.asarray(out.reward).min() >= -1.0 - 2.0 * 1.5
+    with pytest.raises(ValueError, match="upright_min in"):
+        tilt_penalty(batch, jnp.asarray(up), 1.0, 2.0)

@@ -166,6 +166,28 @@ def test_update_critic_loss_delay_and_polyak_targets():
     assert q1(s2) > q1(s1.replace(critic_params=s2.critic_params))
 
 
+def test_action_l2_adds_the_mean_squared_action_to_the_actor_loss():
+    """actor loss = -mean Q1(s, pi(s)) + action_l2 * mean((pi / max_action)^2) (NumPy oracle), and
+    the penalty pulls the deterministic actions towards zero."""
+    b = _batch(5)
+    obs, goal = np.asarray(b.obs), np.asarray(b.goal)
+    update = jax.jit(td3_update, static_argnums=0)
+    ends = {}
+    for l2 in (0.0, 50.0):
+        cfg = TD3Config.model_free(hidden=(32, 32), policy_delay=1, max_action=2.0, action_l2=l2)
+        st = _perturbed_state(cfg)
+        s1, m = update(cfg, st, b, jax.random.key(1))
+        a = np_actor(cfg, st.actor_params, obs, goal)
+        want = -np_twin_q(cfg, s1.critic_params, obs, goal, a)[0].mean() + l2 * ((a / 2.0) ** 2).mean()
+        np.testing.assert_allclose(float(m["actor_loss"]), want, rtol=1e-4)
+        for i in range(80):
+            s1, _ = update(cfg, s1, b, jax.random.key(2 + i))
+        ends[l2] = np.abs(np_actor(cfg, s1.actor_params, obs, goal)).mean()
+    assert ends[50.0] < 0.5 * ends[0.0]
+    with pytest.raises(ValueError, match="action_l2 must be >= 0"):
+        TD3Config(action_l2=-1.0)
+
+
 def test_jit_and_no_jit_agree():
     cfg = TD3Config.model_based(hidden=(16,), policy_delay=1)  # one call covers the actor branch
     st = _perturbed_state(cfg, seed=4)

@@ -26,6 +26,10 @@ def test_invalid_configs_fail_before_compiling():
         Config(env="point_u_maze", mpc_upright_weight=10.0).validate()
     with pytest.raises(ValueError, match="the point mass cannot fall"):
         Config(env="point_u_maze", td3_absorb_fallen=True).validate()
+    with pytest.raises(ValueError, match="the point mass cannot tilt"):
+        Config(env="point_u_maze", td3_upright_weight=1.0).validate()
+    with pytest.raises(ValueError, match="td3_action_l2 must be >= 0"):
+        Config(td3_action_l2=-0.5).validate()
     with pytest.raises(ValueError, match="ant_integrator must be Euler, RK4 or implicitfast"):
         Config(env="u_maze", ant_integrator="rk4").validate()
     with pytest.raises(ValueError, match="unknown config field"):
@@ -42,6 +46,11 @@ def test_presets_keep_paper_constants():
     hash(p)  # static jit argument
     assert T.td3_config(p).target_range is None  # the original does not clip TD targets
     assert T.td3_config(p.override(td3_clip_targets=True)).target_range == pytest.approx((-100.0, 0.0))
+    # the tilt penalty widens the clip range to its worst step, -(1 + W (1 + min)) per step
+    tilt = p.override(td3_clip_targets=True, td3_upright_weight=2.0, td3_upright_min=0.5)
+    assert T.td3_config(tilt).target_range == pytest.approx((-400.0, 0.0))
+    assert T.td3_config(p.override(td3_action_l2=1.0)).action_l2 == 1.0
+    assert T.td3_config(p).action_l2 == 0.0                # off in the paper preset
     up = T.mpc_config(p.override(mpc_upright_weight=10.0, mpc_upright_min=0.3))
     assert (up.upright_weight, up.upright_min, up.quat_index) == (10.0, 0.3, 3)
     assert T.mpc_config(p).upright_weight == 0.0          # off in the paper preset
@@ -80,6 +89,11 @@ def test_td3_batches_make_the_ants_falls_absorbing_when_asked():
         want = np.where(on_back & absorb, -100.0, -1.0)
         np.testing.assert_allclose(np.asarray(b.reward), want, rtol=1e-6)
         np.testing.assert_array_equal(np.asarray(b.discount), np.where(on_back & absorb, 0.0, 1.0))
+    # the tilt penalty: upright steps pay -1, steps on the back -1 - W * (min - (-1))
+    c = cfg.override(td3_absorb_fallen=False, her_relabel_prob=0.0, td3_upright_weight=2.0)
+    b = jax.jit(T.td3_sample_fn(c, env), static_argnums=2)(jax.random.key(2), buf, 256)
+    on_back = np.asarray(env.upright(b.next_obs)) < 0
+    np.testing.assert_allclose(np.asarray(b.reward), np.where(on_back, -1.0 - 2.0 * 1.5, -1.0), rtol=1e-6)
 
 
 def test_no_retracing_across_iterations():
