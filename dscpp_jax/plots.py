@@ -194,6 +194,14 @@ def _split_label(entry: str) -> tuple[Optional[str], str]:
     return None, str(entry)
 
 
+def _si(v: float) -> str:
+    """1500 -> '1.5k', 2_000_000 -> '2M' (tick labels for step counts)."""
+    for div, unit in ((1e9, "G"), (1e6, "M"), (1e3, "k")):
+        if abs(v) >= div:
+            return f"{v / div:.3g}{unit}"
+    return f"{v:.3g}"
+
+
 def plot_curves(run_dirs: Sequence[str], path: str, group: bool = True) -> str:
     """Eval success from the start vs env steps, episodes and wall-clock, and the number of
     options and training-episode success vs env steps. Runs that differ only in the seed are
@@ -238,6 +246,10 @@ def plot_curves(run_dirs: Sequence[str], path: str, group: bool = True) -> str:
                 se = ys.std(0, ddof=1) / np.sqrt(len(curves))
                 ax.fill_between(grid, mean - se, mean + se, color=line.get_color(), alpha=0.25)
         ax.set_xlabel(xlabels[xcol])
+        if xcol == "env_steps":   # 200k, 1.5M: raw step counts run into each other
+            from matplotlib.ticker import FuncFormatter, MaxNLocator
+            ax.xaxis.set_major_locator(MaxNLocator(nbins=6))
+            ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: _si(v)))
         ax.set_ylabel(ylabel)
         ax.grid(alpha=0.3)
         if col.endswith("success_rate") or col.endswith("episode_success"):
