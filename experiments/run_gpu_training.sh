@@ -15,6 +15,7 @@
 # ARGS_<TAG> to the fresh runs of jobs tagged TAG (e.g. ARGS_b1k="--set td3_batch_size=1024");
 # a tagged job's run and results are named <env>_<algo>_<tag>; BUDGET_<TAG> overrides BUDGET for it.
 # Stopped by a signal (e.g. `timeout`), it still packs results.tgz from what the jobs have written.
+# DETERMINISTIC=0 passes --no-deterministic (faster GPU kernels; a seed no longer repeats exactly).
 set -uo pipefail
 ENV=${ENV:-u_maze}
 BUDGET=${BUDGET:-420}
@@ -23,6 +24,8 @@ ALGOS=${ALGOS:-"mb_dscpp mf_dscpp"}
 EXTRA=${EXTRA:-}
 EVAL_EPISODES=${EVAL_EPISODES:-32}
 SERIAL=${SERIAL:-0}
+DET_ARG=--deterministic
+[ "${DETERMINISTIC:-1}" = 0 ] && DET_ARG=--no-deterministic
 if [ -z "${JOBS:-}" ]; then
   JOBS=""
   for a in $ALGOS; do JOBS="$JOBS 0:$ENV:$a"; done
@@ -57,11 +60,11 @@ run_job() {  # gpu env algo [tag]
     args=(--env "$env" --algo "$algo" --seed 0 --run-dir "$run" $EXTRA $tag_args)
   fi
   mkdir -p "$dest"
-  echo "== [gpu $gpu] python -m dscpp_jax.cli train ${args[*]} --time-budget $budget --no-progress --plot"
-  python -m dscpp_jax.cli train "${args[@]}" --time-budget "$budget" --no-progress --plot \
+  echo "== [gpu $gpu] python -m dscpp_jax.cli train ${args[*]} --time-budget $budget --no-progress --plot $DET_ARG"
+  python -m dscpp_jax.cli train "${args[@]}" --time-budget "$budget" --no-progress --plot $DET_ARG \
     > "$dest/train.log" 2>&1
   if [ "$EVAL_EPISODES" -gt 0 ]; then  # 0: no separate evaluation (e.g. a chunk to be resumed)
-    python -m dscpp_jax.cli eval --run "$run" --episodes "$EVAL_EPISODES" > "$dest/eval.log" 2>&1
+    python -m dscpp_jax.cli eval --run "$run" --episodes "$EVAL_EPISODES" $DET_ARG > "$dest/eval.log" 2>&1
   fi
   collect "$run" "$dest"
   grep -v -e "warp" -e "^WARNING" "$dest/train.log" | tail -n 4 | sed "s/^/[$name] /"

@@ -209,3 +209,22 @@ def test_config_records_the_git_commit_only_of_a_checkout_that_tracks_the_source
     outside = tmp_path.parent / "outside_mod.py"
     outside.write_text("x = 1\n")
     assert _git_commit(str(outside)) == ""
+
+
+def test_deterministic_switch_sets_xla_flags_only_before_jax_uses_a_device(monkeypatch):
+    from jax._src import xla_bridge
+    from dscpp_jax.cli import DETERMINISTIC_FLAG, build_parser, use_deterministic_ops
+    monkeypatch.setenv("XLA_FLAGS", "--xla_dump_to=/tmp/x")
+    monkeypatch.setattr(xla_bridge, "backends_are_initialized", lambda: False)
+    assert not use_deterministic_ops(False) and os.environ["XLA_FLAGS"] == "--xla_dump_to=/tmp/x"
+    assert use_deterministic_ops(True)
+    assert os.environ["XLA_FLAGS"] == f"--xla_dump_to=/tmp/x {DETERMINISTIC_FLAG}"
+    assert use_deterministic_ops(True)                 # already there: not added twice
+    assert os.environ["XLA_FLAGS"].count("deterministic") == 1
+    monkeypatch.setenv("XLA_FLAGS", "")
+    monkeypatch.setattr(xla_bridge, "backends_are_initialized", lambda: True)
+    assert not use_deterministic_ops(True) and os.environ["XLA_FLAGS"] == ""   # too late: unchanged
+    p = build_parser()
+    assert p.parse_args(["train"]).deterministic is True               # the default
+    assert p.parse_args(["train", "--no-deterministic"]).deterministic is False
+    assert p.parse_args(["eval", "--run", "r", "--no-deterministic"]).deterministic is False
