@@ -22,7 +22,7 @@ BUDGET=${BUDGET:-420}
 OUT=${OUT:-experiments/results/train_${ENV}}
 ALGOS=${ALGOS:-"mb_dscpp mf_dscpp"}
 EXTRA=${EXTRA:-}
-EVAL_EPISODES=${EVAL_EPISODES:-32}
+EVAL_EPISODES=${EVAL_EPISODES:-100}  # 100: a standard error of about 0.03 at 0.9 (32 gave about 0.05)
 SERIAL=${SERIAL:-0}
 DET_ARG=--deterministic
 [ "${DETERMINISTIC:-1}" = 0 ] && DET_ARG=--no-deterministic
