@@ -67,11 +67,15 @@ def use_deterministic_ops(on: bool) -> bool:
     CPU runs repeat either way. XLA reads the flag when JAX first touches a device, so this only
     works before that; returns whether the flag is in effect for this process.
     """
-    from jax._src import xla_bridge
     flags = os.environ.get("XLA_FLAGS", "")
     if not on or "xla_gpu_deterministic_ops" in flags:
         return "xla_gpu_deterministic_ops=true" in flags
-    if xla_bridge.backends_are_initialized():
+    try:   # a private helper of JAX's; where a version lacks it, assume no device is in use yet
+        from jax._src.xla_bridge import backends_are_initialized
+    except ImportError:
+        def backends_are_initialized():
+            return False
+    if backends_are_initialized():
         import jax
         if jax.default_backend() != "gpu":
             return False   # CPU kernels repeat anyway
