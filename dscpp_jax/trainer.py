@@ -440,13 +440,14 @@ def td3_sample_fn(config: Config, env) -> Any:
         batch = _her_sample(k, buf, n, strategy=config.her_strategy,
                             relabel_prob=config.her_relabel_prob, max_segment=max_seg,
                             goal_tolerance=config.goal_tolerance)
+        if config.td3_upright_weight > 0 or config.td3_absorb_fallen:
+            up = env.upright(batch.next_obs)
         if config.td3_upright_weight > 0:
             from dscpp_jax.her import tilt_penalty
-            batch = tilt_penalty(batch, env.upright(batch.next_obs), config.td3_upright_weight,
-                                 config.td3_upright_min)
+            batch = tilt_penalty(batch, up, config.td3_upright_weight, config.td3_upright_min)
         if config.td3_absorb_fallen:
             from dscpp_jax.her import absorb_failures
-            batch = absorb_failures(batch, env.upright(batch.next_obs) < 0, config.discount)
+            batch = absorb_failures(batch, up < 0, config.discount)
         return batch
 
     return sample_fn
