@@ -65,6 +65,8 @@ class Config:
     td3_hidden: int = 256
     td3_batch_size: int = 100
     td3_updates_per_step: float = 1.0  # gradient steps per stored env transition
+    td3_sample_block: int = 1          # minibatches drawn per replay sampling call (1: one per
+                                       # gradient step; > 1: fewer, larger gathers, same math)
     td3_lr: float = -1.0               # < 0: the algorithm's preset (1e-5 model based, 3e-4 free)
     td3_clip_targets: bool = False     # clip TD targets to [-1 / (1 - discount), 0], the range of
                                        # every value under the 0 / -1 reward (not in the original)
@@ -213,6 +215,9 @@ class Config:
         need(self.random_action_prob <= 1.0, "random_action_prob must be <= 1")
         need(self.td3_updates_per_step >= 0 and self.dyn_updates_per_step >= 0,
              "updates_per_step values must be >= 0")
+        need(self.td3_sample_block >= 1,
+             f"td3_sample_block must be >= 1 (1: one replay sample per gradient step), got "
+             f"{self.td3_sample_block}")
         need(self.mpc_dtype in ("float32", "bfloat16"), "mpc_dtype must be float32 or bfloat16")
         need(self.mpc_upright_weight >= 0 and -1.0 <= self.mpc_upright_min <= 1.0,
              "mpc_upright_weight must be >= 0 and mpc_upright_min in [-1, 1]")

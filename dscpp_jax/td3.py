@@ -329,24 +329,55 @@ def td3_updates(
     key: jax.Array,
     num_steps: int,
     sample_fn: Callable[[jax.Array, PyTree, int], Transition],
+    sample_block: int = 1,
 ) -> Tuple[TD3State, Dict[str, jax.Array]]:
     """``num_steps`` (static) rounds of sample + :func:`td3_update` as one ``lax.scan``.
 
     ``sample_fn(key, buffer, batch_size) -> Transition``, e.g.
     ``lambda k, b, n: her_sample(k, b, n, strategy="future")``. Metrics are means over the steps
     (``actor_loss`` over the steps that updated the actor).
+
+    ``sample_block`` (static) > 1 draws the minibatches of that many consecutive steps with one
+    ``sample_fn`` call and then runs the steps over them. The buffer does not change while it
+    learns, so every minibatch is still an independent draw from it; only the random stream
+    differs. On a GPU this turns many small gathers into a few large ones. Leftover steps
+    (``num_steps % sample_block``) sample one minibatch each.
     """
     num_steps = int(num_steps)
+    sample_block = int(sample_block)
     if num_steps < 1:
         raise ValueError(f"td3_updates: num_steps must be >= 1, got {num_steps}")
+    if sample_block < 1:
+        raise ValueError(f"td3_updates: sample_block must be >= 1, got {sample_block}")
+    n = cfg.batch_size
 
     def body(st, k):
         ks, ku = jax.random.split(k)
-        batch = sample_fn(ks, buffer, cfg.batch_size)
+        batch = sample_fn(ks, buffer, n)
         st, m = td3_update(cfg, st, batch, ku)
         return st, m
 
-    state, ms = jax.lax.scan(body, state, jax.random.split(key, num_steps))
+    def block_body(st, k):
+        ks, ku = jax.random.split(k)
+        batches = jax.tree_util.tree_map(
+            lambda x: x.reshape((sample_block, n) + x.shape[1:]),
+            sample_fn(ks, buffer, sample_block * n))
+        return jax.lax.scan(lambda s, bk: td3_update(cfg, s, bk[0], bk[1]), st,
+                            (batches, jax.random.split(ku, sample_block)))
+
+    if sample_block == 1:
+        state, ms = jax.lax.scan(body, state, jax.random.split(key, num_steps))
+    else:
+        n_blocks, rest = divmod(num_steps, sample_block)
+        k_blocks, k_rest = jax.random.split(key)
+        parts = []
+        if n_blocks:
+            state, mb = jax.lax.scan(block_body, state, jax.random.split(k_blocks, n_blocks))
+            parts.append(jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:]), mb))
+        if rest:
+            state, mr = jax.lax.scan(body, state, jax.random.split(k_rest, rest))
+            parts.append(mr)
+        ms = jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs), *parts)
     n_actor = jnp.maximum(jnp.sum(ms["actor_updated"]), 1.0)
     metrics = {k: jnp.mean(v) for k, v in ms.items() if k not in ("actor_loss", "actor_updated")}
     metrics["actor_loss"] = jnp.sum(ms["actor_loss"]) / n_actor

@@ -367,7 +367,7 @@ def _learn(state: TrainState, key) -> Tuple[TrainState, Dict[str, jax.Array]]:
     k_td3, k_dyn, k_pre = jax.random.split(key, 3)
     metrics: Dict[str, jax.Array] = {}
     td3, tm = td3_updates(tcfg, state.td3, state.replay, k_td3, config.td3_updates,
-                          td3_sample_fn(config, env))
+                          td3_sample_fn(config, env), sample_block=config.td3_sample_block)
     metrics.update({f"td3/{k}": v for k, v in tm.items()})
     finite = {"td3": _all_finite(td3)}
     dyn = state.dyn

@@ -10,6 +10,8 @@ For each B it times (median of repeated jitted calls, results blocked on):
             policy: options, subgoals, MPC or actor, recording, replay writes)
   learn     TD3 + dynamics updates, classifier refits, chain growth (fresh chain: refits are cheap
             here; experiments/bench_options.py times refits on full buffers)
+  td3       the iteration's TD3+HER gradient steps alone (part of learn); with --td3-blocks, also
+            for each listed td3_sample_block (minibatches drawn per replay sampling call)
   train_step  the jitted train_step after warm-up
 and prints env steps/s for each. Writes JSON with the device, versions and command.
 """
@@ -39,7 +41,8 @@ def _time(fn, *args, reps=3):
     return statistics.median(ts)
 
 
-def profile(env_name: str, algo: str, B: int, overrides: dict, reps: int) -> dict:
+def profile(env_name: str, algo: str, B: int, overrides: dict, reps: int,
+            td3_blocks=()) -> dict:
     import jax
     import jax.numpy as jnp
 
@@ -79,6 +82,17 @@ def profile(env_name: str, algo: str, B: int, overrides: dict, reps: int) -> dic
     out["rollout_policy_s"] = _time(roll, post, k, reps=reps)
     learn = jax.jit(T._learn)
     out["learn_s"] = _time(learn, post, k, reps=reps)
+    from dscpp_jax.td3 import td3_updates
+    tcfg, sample = T.td3_config(cfg), T.td3_sample_fn(cfg, env)
+    out["td3_updates"] = cfg.td3_updates
+    out["td3_sample_block"] = cfg.td3_sample_block
+    for blk in sorted({cfg.td3_sample_block, *td3_blocks}):
+        fn = jax.jit(lambda td3, rep, kk, blk=blk: td3_updates(
+            tcfg, td3, rep, kk, cfg.td3_updates, sample, sample_block=blk))
+        t = _time(fn, post.td3, post.replay, k, reps=reps)
+        out.setdefault("td3_s_by_sample_block", {})[str(blk)] = t
+        if blk == cfg.td3_sample_block:
+            out["td3_s"] = t
     out["train_step_s"] = _time(T.train_step, post, reps=reps)
     n = B * Tn
     out["env_steps_per_s"] = {name: n / out[name] for name in
@@ -93,6 +107,8 @@ def main(argv=None) -> int:
     p.add_argument("--num-envs", type=int, nargs="+", default=[128, 512])
     p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE")
     p.add_argument("--reps", type=int, default=3)
+    p.add_argument("--td3-blocks", type=int, nargs="*", default=[],
+                   help="also time the TD3 steps with these td3_sample_block values")
     p.add_argument("--out", default=None)
     args = p.parse_args(argv)
 
@@ -109,15 +125,19 @@ def main(argv=None) -> int:
            "python": platform.python_version(), "env": args.env, "algo": args.algo,
            "overrides": overrides, "results": []}
     for B in args.num_envs:
-        r = profile(args.env, args.algo, B, overrides, args.reps)
+        r = profile(args.env, args.algo, B, overrides, args.reps, args.td3_blocks)
         res["results"].append(r)
         print(json.dumps(r), flush=True)
     print(f"\n{'B':>6} {'env':>9} {'mpc':>9} {'roll-warm':>9} {'roll-pol':>9} {'learn':>9} "
-          f"{'step':>9} {'steps/s':>9}   (seconds per iteration)")
+          f"{'td3':>9} {'step':>9} {'steps/s':>9}   (seconds per iteration)")
     for r in res["results"]:
         print(f"{r['num_envs']:>6} {r['env_s']:9.3f} {r.get('mpc_s', float('nan')):9.3f} "
               f"{r['rollout_warmup_s']:9.3f} {r['rollout_policy_s']:9.3f} {r['learn_s']:9.3f} "
-              f"{r['train_step_s']:9.3f} {r['env_steps_per_s']['train_step_s']:9.0f}")
+              f"{r['td3_s']:9.3f} {r['train_step_s']:9.3f} "
+              f"{r['env_steps_per_s']['train_step_s']:9.0f}")
+        if len(r["td3_s_by_sample_block"]) > 1:
+            print(f"{'':>6} TD3 steps ({r['td3_updates']}) by td3_sample_block: " + ", ".join(
+                f"{b}: {t:.3f} s" for b, t in r["td3_s_by_sample_block"].items()))
     if args.out:
         with open(args.out, "w") as f:
             json.dump(res, f, indent=2)

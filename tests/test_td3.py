@@ -230,6 +230,46 @@ def test_no_retracing_across_repeated_updates():
     assert int(st.step) == 16 and float(m["actor_updates"]) in (1.0, 2.0)
 
 
+def test_sample_block_draws_several_minibatches_at_once_and_updates_in_order():
+    """sample_block=3 over 7 steps: two blocks of 3 minibatches drawn by one sample call each,
+    then one step sampling alone; the same as td3_update applied step by step to those batches."""
+    cfg = TD3Config.model_free(hidden=(16,), batch_size=B)
+    st0 = _perturbed_state(cfg, seed=6)
+    calls = []
+
+    def sample(k, buf, n):
+        calls.append(n)
+        return _batch_impl(k, n)
+
+    key = jax.random.key(11)
+    st, m = jax.jit(lambda s, k: td3_updates(cfg, s, None, k, 7, sample, sample_block=3))(st0, key)
+    assert sorted(calls) == [B, 3 * B]            # traced once each: the block and the leftover
+
+    upd = jax.jit(td3_update, static_argnums=0)
+    ref, losses, n_actor = st0, [], 0.0
+    k_blocks, k_rest = jax.random.split(key)
+    steps = []
+    for kb in jax.random.split(k_blocks, 2):
+        ks, ku = jax.random.split(kb)
+        big = _batch_impl(ks, 3 * B)
+        for i, kk in enumerate(jax.random.split(ku, 3)):
+            steps.append((jax.tree_util.tree_map(lambda x: x[i * B:(i + 1) * B], big), kk))
+    for kr in jax.random.split(k_rest, 1):
+        ks, ku = jax.random.split(kr)
+        steps.append((_batch_impl(ks, B), ku))
+    for batch, kk in steps:
+        ref, mm = upd(cfg, ref, batch, kk)
+        losses.append(float(mm["critic_loss"]))
+        n_actor += float(mm["actor_updated"])
+    assert int(st.step) == int(st0.step) + 7
+    for a, c in zip(jax.tree_util.tree_leaves(st), jax.tree_util.tree_leaves(ref)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(c), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(float(m["critic_loss"]), np.mean(losses), rtol=1e-5)
+    assert float(m["actor_updates"]) == n_actor == 3.0   # policy delay 2 over 7 steps
+    with pytest.raises(ValueError, match="sample_block"):
+        td3_updates(cfg, st0, None, key, 7, sample, sample_block=0)
+
+
 def test_exploration_and_config():
     cfg = TD3Config.model_free(hidden=(16,))
     td3_explore = jax.jit(_td3_explore, static_argnums=0)

@@ -30,6 +30,8 @@ def test_invalid_configs_fail_before_compiling():
         Config(env="point_u_maze", td3_upright_weight=1.0).validate()
     with pytest.raises(ValueError, match="td3_action_l2 must be >= 0"):
         Config(td3_action_l2=-0.5).validate()
+    with pytest.raises(ValueError, match="td3_sample_block must be >= 1"):
+        Config(td3_sample_block=0).validate()
     with pytest.raises(ValueError, match="ant_integrator must be Euler, RK4 or implicitfast"):
         Config(env="u_maze", ant_integrator="rk4").validate()
     with pytest.raises(ValueError, match="unknown config field"):
