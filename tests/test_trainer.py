@@ -53,6 +53,12 @@ def test_presets_keep_paper_constants():
     assert T.td3_config(tilt).target_range == pytest.approx((-400.0, 0.0))
     assert T.td3_config(p.override(td3_action_l2=1.0)).action_l2 == 1.0
     assert T.td3_config(p).action_l2 == 0.0                # off in the paper preset
+    assert p.td3_sample_block == 1
+    # the ant `fast` preset: the action penalty on the model-free actors only; blocked sampling
+    for algo, l2 in (("mf_dscpp", 1.0), ("td3_her", 1.0), ("dsc", 1.0), ("mb_dscpp", 0.0)):
+        f = preset("fast", "four_rooms", algo)
+        assert (T.td3_config(f).action_l2, f.td3_sample_block) == (l2, 32), algo
+    assert preset("fast", "point_u_maze", "mf_dscpp").td3_action_l2 == 0.0
     up = T.mpc_config(p.override(mpc_upright_weight=10.0, mpc_upright_min=0.3))
     assert (up.upright_weight, up.upright_min, up.quat_index) == (10.0, 0.3, 3)
     assert T.mpc_config(p).upright_weight == 0.0          # off in the paper preset
