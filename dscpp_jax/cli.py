@@ -87,6 +87,40 @@ def use_deterministic_ops(on: bool) -> bool:
     return True
 
 
+COMPILE_CACHE_ENV = "DSCPP_JAX_COMPILE_CACHE"
+DEFAULT_COMPILE_CACHE = os.path.join("~", ".cache", "dscpp_jax", "xla")
+
+
+def use_compile_cache(path: Optional[str], min_compile_time_s: float = 1.0) -> Optional[str]:
+    """Keep compiled programs in directory ``path`` (JAX's persistent compilation cache), so that
+    a resumed run, or an evaluation of a config trained before, loads its programs instead of
+    compiling them again (the ant's ``train_step`` takes tens of seconds to compile).
+
+    ``None`` picks ``$DSCPP_JAX_COMPILE_CACHE``, then JAX's own ``jax_compilation_cache_dir``
+    setting, then ``~/.cache/dscpp_jax/xla``; ``"off"`` (or ``""``) uses no cache. Programs that
+    compile faster than ``min_compile_time_s`` are not stored. JAX decides whether to use the
+    cache at its first compilation, so this only takes effect before that. Returns the directory
+    in use, or None.
+    """
+    import jax
+    if path is None:
+        path = os.environ.get(COMPILE_CACHE_ENV)
+    if path is None:
+        path = jax.config.jax_compilation_cache_dir or DEFAULT_COMPILE_CACHE
+    if not path or path.lower() == "off":
+        return None
+    path = os.path.abspath(os.path.expanduser(path))
+    try:
+        os.makedirs(path, exist_ok=True)
+    except OSError as e:
+        print(f"warning: cannot use {path} as the compilation cache ({e}); compiling without it",
+              file=sys.stderr)
+        return None
+    jax.config.update("jax_compilation_cache_dir", path)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", float(min_compile_time_s))
+    return path
+
+
 def default_run_dir(cfg: Config, root: str = "runs") -> str:
     stamp = time.strftime("%Y%m%d-%H%M%S")
     return os.path.join(root, f"{cfg.env}-{cfg.algo}-s{cfg.seed}-{stamp}")
@@ -413,6 +447,9 @@ def build_parser() -> argparse.ArgumentParser:
                 "--no-deterministic runs 1.1-1.3x faster on the ant but not repeatably)")
     t.add_argument("--deterministic", action=argparse.BooleanOptionalAction, default=True,
                    help=det_help)
+    cache_help = ("directory of compiled programs reused across runs, resumes and evaluations "
+                  f"(default: ${COMPILE_CACHE_ENV}, else {DEFAULT_COMPILE_CACHE}; 'off': none)")
+    t.add_argument("--compile-cache", default=None, metavar="DIR", help=cache_help)
     t.set_defaults(func=cmd_train)
 
     e = sub.add_parser("eval", help="evaluate a run's latest checkpoint")
@@ -423,6 +460,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--no-plot", action="store_true")
     e.add_argument("--deterministic", action=argparse.BooleanOptionalAction, default=True,
                    help=det_help)
+    e.add_argument("--compile-cache", default=None, metavar="DIR", help=cache_help)
     e.set_defaults(func=cmd_eval)
 
     pl = sub.add_parser("plot", help="learning curves (one or many runs) + trajectory/classifier plots")
@@ -437,6 +475,8 @@ def main(argv: Optional[list[str]] = None) -> int:
     args = build_parser().parse_args(argv)
     if hasattr(args, "deterministic"):
         use_deterministic_ops(args.deterministic)
+    if hasattr(args, "compile_cache"):
+        use_compile_cache(args.compile_cache)
     try:
         return args.func(args)
     except ValueError as e:

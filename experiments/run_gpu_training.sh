@@ -16,6 +16,7 @@
 # a tagged job's run and results are named <env>_<algo>_<tag>; BUDGET_<TAG> overrides BUDGET for it.
 # Stopped by a signal (e.g. `timeout`), it still packs results.tgz from what the jobs have written.
 # DETERMINISTIC=0 passes --no-deterministic (faster GPU kernels; a seed no longer repeats exactly).
+# Compiled programs are kept in $DSCPP_JAX_COMPILE_CACHE (default runs/xla_cache).
 set -uo pipefail
 ENV=${ENV:-u_maze}
 BUDGET=${BUDGET:-420}
@@ -25,6 +26,8 @@ EXTRA=${EXTRA:-}
 EVAL_EPISODES=${EVAL_EPISODES:-100}  # 100: a standard error of about 0.03 at 0.9 (32 gave about 0.05)
 SERIAL=${SERIAL:-0}
 DET_ARG=--deterministic
+# compiled programs next to the runs, so a resumed chunk or an evaluation loads them
+export DSCPP_JAX_COMPILE_CACHE=${DSCPP_JAX_COMPILE_CACHE:-$PWD/runs/xla_cache}
 [ "${DETERMINISTIC:-1}" = 0 ] && DET_ARG=--no-deterministic
 if [ -z "${JOBS:-}" ]; then
   JOBS=""

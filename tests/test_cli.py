@@ -2,6 +2,7 @@
 import json
 import os
 import signal
+import sys
 
 import pytest
 
@@ -9,6 +10,8 @@ from dscpp_jax import checkpoint as ck
 from dscpp_jax import trainer as T
 from dscpp_jax.cli import main
 from dscpp_jax.run_logging import read_metrics
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 TINY = ["num_envs=4", "steps_per_iter=20", "episode_length=100", "warmup_episodes=2",
         "max_options=4", "max_pos_traj=8", "max_neg=8", "buffer_len=10", "option_timeout=40",
@@ -228,3 +231,32 @@ def test_deterministic_switch_sets_xla_flags_only_before_jax_uses_a_device(monke
     assert p.parse_args(["train"]).deterministic is True               # the default
     assert p.parse_args(["train", "--no-deterministic"]).deterministic is False
     assert p.parse_args(["eval", "--run", "r", "--no-deterministic"]).deterministic is False
+
+
+def test_compile_cache_stores_programs_and_a_second_process_loads_them(tmp_path):
+    """A fresh process with the cache compiles and stores; the next one loads from it."""
+    import subprocess
+    cache = tmp_path / "cache"
+    code = (
+        "import sys, jax, jax.numpy as jnp\n"
+        "from jax._src import monitoring\n"
+        "from dscpp_jax.cli import use_compile_cache\n"
+        "hits = []\n"
+        "monitoring.register_event_listener(\n"
+        "    lambda name, **kw: hits.append(name) if name.endswith('cache_hits') else None)\n"
+        f"assert use_compile_cache({str(cache)!r}, min_compile_time_s=0.0) == {str(cache)!r}\n"
+        "f = jax.jit(lambda x: jnp.sin(x) @ jnp.cos(x).T + 7.0)\n"
+        "f(jnp.ones((16, 16))).block_until_ready()\n"
+        "print('hits', len(hits))\n")
+    env = {**os.environ, "JAX_PLATFORMS": "cpu"}
+    env.pop("DSCPP_JAX_COMPILE_CACHE", None)
+    runs = [subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                           cwd=ROOT, timeout=300) for _ in range(2)]
+    for r in runs:
+        assert r.returncode == 0, r.stderr[-2000:]
+    assert any(cache.iterdir())                                  # the first process stored it
+    assert "hits 0" in runs[0].stdout and "hits 0" not in runs[1].stdout
+    from dscpp_jax.cli import build_parser, use_compile_cache
+    assert use_compile_cache("off") is None and use_compile_cache("") is None
+    assert build_parser().parse_args(["train", "--compile-cache", "d"]).compile_cache == "d"
+    assert build_parser().parse_args(["eval", "--run", "r"]).compile_cache is None
