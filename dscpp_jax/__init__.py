@@ -8,14 +8,21 @@
     summary, result = dscpp_jax.evaluate(state)            # jitted, no side effects
     policy = dscpp_jax.make_policy(state)                  # pure, jit-able
 
-Several seeds in one process: `jax.vmap(lambda k: dscpp_jax.init(k, cfg))(keys)` and
-`jax.jit(jax.vmap(dscpp_jax.train_step_impl))(states)`.
+Many seeds in one jitted program, sharded over all devices (and hosts): see
+`dscpp_jax.seed_group`:
+
+    states = dscpp_jax.init_group([0, 1, 2, 3], cfg)       # seed s == init(PRNGKey(s), cfg)
+    states, metrics = dscpp_jax.train_step_group(states)  # metrics: (4,) per key
+    summaries, result = dscpp_jax.evaluate_group(states)  # one summary dict per seed
 """
 from dscpp_jax.config import ALGOS, SUBGOALS, Config, preset
 from dscpp_jax.evaluate import EvalResult, Policy, evaluate, evaluate_episodes, make_policy
+from dscpp_jax.seed_group import evaluate_group, init_group, seed_mesh, seed_state, \
+    train_step_group
 from dscpp_jax.trainer import TrainState, init, make_env, train_step, train_step_impl
 
 __all__ = ["ALGOS", "SUBGOALS", "Config", "preset", "TrainState", "init", "train_step",
            "train_step_impl", "evaluate", "evaluate_episodes", "EvalResult", "make_policy",
-           "Policy", "make_env"]
+           "Policy", "make_env", "init_group", "train_step_group", "evaluate_group", "seed_state",
+           "seed_mesh"]
 __version__ = "0.1.0"
