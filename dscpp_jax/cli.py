@@ -307,6 +307,12 @@ def load_run(run_dir: str, step: Optional[int] = None):
     from dscpp_jax import checkpoint as ck
     from dscpp_jax import trainer as T
     from dscpp_jax.run_logging import read_config
+    from dscpp_jax import group_train
+    if group_train.group_of(run_dir) is not None:   # a seed directory inside a seed group
+        return group_train.load_seed(run_dir, step)
+    if group_train.is_group_dir(run_dir):
+        raise ValueError(f"{run_dir} is a seed group; name one of its seeds, e.g. "
+                         f"{os.path.join(run_dir, 's%d' % group_train.read_group(run_dir)['seeds'][0])}")
     cfg = Config.from_dict(read_config(run_dir)["config"])
     state = ck.restore_state(run_dir, T.init(jax.random.PRNGKey(cfg.seed), cfg), step)
     return cfg, state
@@ -364,6 +370,8 @@ def cmd_plot(args) -> int:
 
 
 def cmd_train(args) -> int:
+    if getattr(args, "seeds", None) is not None or _resumes_group(args) or _distributed(args):
+        return cmd_train_group(args)
     if args.resume:
         from dscpp_jax.run_logging import read_config
         cfg = Config.from_dict(read_config(args.resume)["config"])
@@ -413,6 +421,88 @@ def cmd_train(args) -> int:
     return 0
 
 
+# ------------------------------------------------------------------------------------------------
+# Seed groups: `train --seeds 0-7` (dscpp_jax.seed_group, dscpp_jax.group_train)
+# ------------------------------------------------------------------------------------------------
+class _SeedGiven(argparse.Action):
+    """--seed that remembers it was given (so that --seed with --seeds is an error)."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        setattr(namespace, self.dest, values)
+        namespace.seed_given = True
+
+
+def _resumes_group(args) -> bool:
+    from dscpp_jax.group_train import is_group_dir
+    return bool(args.resume) and is_group_dir(args.resume)
+
+
+def _distributed(args) -> bool:
+    return bool(getattr(args, "coordinator", None) or getattr(args, "distributed", False))
+
+
+def _add_group_arguments(t: argparse.ArgumentParser) -> None:
+    t.add_argument("--seeds", default=None, metavar="LIST",
+                   help="train a seed group in one program, e.g. 0-7 or 0-3,7,9 (one run directory "
+                        "per seed inside runs/<env>-<algo>-g<seeds>-<time>/)")
+    t.add_argument("--coordinator", default=None, metavar="HOST:PORT",
+                   help="multi-host seed group: address of process 0 (jax.distributed)")
+    t.add_argument("--num-processes", dest="num_processes", type=int, default=None)
+    t.add_argument("--process-id", dest="process_id", type=int, default=None)
+    t.add_argument("--distributed", action="store_true",
+                   help="join a multi-host run that JAX detects itself (SLURM, Open MPI, ...) or "
+                        "that JAX_COORDINATOR_ADDRESS / JAX_NUM_PROCESSES / JAX_PROCESS_ID describe")
+
+
+def cmd_train_group(args) -> int:
+    from dscpp_jax import group_train
+    from dscpp_jax import seed_group as SG
+    if _distributed(args):   # before anything touches a device
+        SG.initialize_distributed(args.coordinator, args.num_processes, args.process_id)
+    if args.resume:
+        if not group_train.is_group_dir(args.resume):
+            raise ValueError(f"{args.resume} is not a seed group (no {group_train.GROUP_FILE}); "
+                             f"resume a single run without --seeds")
+        if args.seeds is not None:
+            raise ValueError("--resume of a seed group continues its own seeds; drop --seeds")
+        extra = _overrides(args.set)
+        for name in ("total_env_steps", "total_episodes"):
+            if getattr(args, name) is not None:
+                extra[name] = getattr(args, name)
+        cfg, seeds = group_train.resume_config(args.resume, extra)
+        group_dir = args.resume
+    else:
+        if args.seeds is None:
+            raise ValueError("--coordinator / --distributed train a seed group: add --seeds LIST")
+        if getattr(args, "seed_given", False):
+            raise ValueError("give either --seed N (one run) or --seeds LIST (a seed group), "
+                             "not both")
+        seeds = SG.parse_seeds(args.seeds)
+        cfg = config_from_args(args)
+        group_dir = args.run_dir
+    try:
+        states, group_dir, summaries = group_train.train_group(
+            cfg, seeds, group_dir, resume=bool(args.resume), time_budget=args.time_budget,
+            progress=not args.no_progress, plot=args.plot)
+    except TrainingDiverged as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 3
+    import jax
+    c = SG.to_host(states.counters)   # a collective in a multi-process run: every process
+    if jax.process_index() != 0:
+        return 0
+    if args.resume:
+        group_train.update_configs(group_dir, cfg, seeds)
+    import numpy as np
+    succ = np.array([s["eval/success_rate"] for s in summaries])
+    print(f"group: {group_dir} ({len(seeds)} seeds on {jax.device_count()} devices)")
+    for i, s in enumerate(seeds):
+        print(f"  s{s}: env steps {int(c.env_steps[i])}, episodes {int(c.episodes[i])}, eval "
+              f"success {succ[i]:.2f}, options {int(summaries[i]['eval/num_options'])}")
+    print(f"eval success mean {succ.mean():.2f} min {succ.min():.2f} max {succ.max():.2f}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m dscpp_jax.cli",
                                 description="Robust Deep Skill Chaining (DSC++) in JAX")
@@ -421,7 +511,7 @@ def build_parser() -> argparse.ArgumentParser:
     t = sub.add_parser("train", help="train a run (or continue one with --resume)")
     t.add_argument("--env", default="point_u_maze")
     t.add_argument("--algo", default="mb_dscpp", choices=ALGOS)
-    t.add_argument("--seed", type=int, default=0)
+    t.add_argument("--seed", type=int, default=0, action=_SeedGiven)
     t.add_argument("--preset", default="fast", choices=PRESETS)
     t.add_argument("--subgoal", default=None, choices=SUBGOALS)
     t.add_argument("--num-envs", dest="num_envs", type=int, default=None)
@@ -450,6 +540,7 @@ def build_parser() -> argparse.ArgumentParser:
     cache_help = ("directory of compiled programs reused across runs, resumes and evaluations "
                   f"(default: ${COMPILE_CACHE_ENV}, else {DEFAULT_COMPILE_CACHE}; 'off': none)")
     t.add_argument("--compile-cache", default=None, metavar="DIR", help=cache_help)
+    _add_group_arguments(t)
     t.set_defaults(func=cmd_train)
 
     e = sub.add_parser("eval", help="evaluate a run's latest checkpoint")

@@ -1,0 +1,369 @@
+"""Host-side driver of seed groups (`train --seeds 0-7`): one jitted program trains every seed;
+each seed keeps an ordinary run directory inside the group directory.
+
+    runs/<env>-<algo>-g0-7-<time>/
+      group.json          seeds, config, command, devices, processes, library versions
+      checkpoints/<it>/   one orbax checkpoint of the whole group state
+      plots/curves.png    with --plot: curves over the seeds (mean +- s.e.)
+      s0/ s1/ ...         one run directory per seed: config.json (its own seed), metrics.csv,
+                          tb/, eval.json, plots/ (with --plot); no checkpoints of its own
+
+`eval --run GROUP/s3` and `plot GROUP/s0 GROUP/s1` work on a seed directory: `load_run` sees that
+it belongs to a group and restores the group checkpoint, then takes that seed out of it
+(`load_seed`). A seed of a group whose learning diverges stops the whole group (one program, one
+checkpoint): the last finite group state is saved and the error names the seed(s).
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import signal
+import sys
+import time
+from typing import Optional, Sequence
+
+import numpy as np
+
+from dscpp_jax.config import Config
+
+GROUP_FILE = "group.json"
+
+
+def seed_dir(group_dir: str, seed: int) -> str:
+    return os.path.join(group_dir, f"s{seed}")
+
+
+def is_group_dir(path: str) -> bool:
+    return os.path.isfile(os.path.join(path, GROUP_FILE))
+
+
+def read_group(group_dir: str) -> dict:
+    with open(os.path.join(group_dir, GROUP_FILE)) as f:
+        return json.load(f)
+
+
+def group_of(run_dir: str) -> Optional[tuple]:
+    """(group_dir, index in the group) when `run_dir` is a seed directory of a group, else None."""
+    cfg_path = os.path.join(run_dir, "config.json")
+    parent = os.path.dirname(os.path.abspath(os.path.normpath(run_dir)))
+    if not (os.path.isfile(cfg_path) and is_group_dir(parent)):
+        return None
+    with open(cfg_path) as f:
+        payload = json.load(f)
+    if "group_index" not in payload:
+        return None
+    return parent, int(payload["group_index"])
+
+
+def default_group_dir(cfg: Config, seeds: Sequence[int], root: str = "runs",
+                      stamp: Optional[str] = None) -> str:
+    from dscpp_jax.seed_group import format_seeds
+    stamp = stamp or time.strftime("%Y%m%d-%H%M%S")
+    return os.path.join(root, f"{cfg.env}-{cfg.algo}-g{format_seeds(seeds)}-{stamp}")
+
+
+def _shared_stamp() -> str:
+    """The same time stamp in every process (process 0's)."""
+    import jax
+    t = int(time.time())
+    if jax.process_count() > 1:
+        from jax.experimental import multihost_utils
+        t = int(multihost_utils.broadcast_one_to_all(np.int64(t)))
+    return time.strftime("%Y%m%d-%H%M%S", time.localtime(t))
+
+
+def _agree(flags: np.ndarray) -> np.ndarray:
+    """Process 0's host decisions (stop, budget) in every process, so all stop together."""
+    import jax
+    if jax.process_count() == 1:
+        return flags
+    from jax.experimental import multihost_utils
+    return np.asarray(multihost_utils.broadcast_one_to_all(flags))
+
+
+def _abstract_group(cfg: Config, n: int):
+    import jax
+
+    from dscpp_jax import trainer as T
+    T.make_env(cfg.device_view())
+    one = jax.eval_shape(lambda k: T.init_impl(k, cfg), jax.random.PRNGKey(0))
+    return jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct((n,) + x.shape, x.dtype), one)
+
+
+def load_seed(run_dir: str, step: Optional[int] = None):
+    """(config, state) of a seed directory of a group: the group checkpoint restored on this
+    process's default device, seed taken out (an ordinary single-seed TrainState)."""
+    import jax
+    import jax.numpy as jnp
+
+    from dscpp_jax import seed_group as SG
+    from dscpp_jax.run_logging import read_config
+    found = group_of(run_dir)
+    if found is None:
+        raise ValueError(f"{run_dir} is not a seed directory of a group")
+    group_dir, index = found
+    cfg = Config.from_dict(read_config(run_dir)["config"])
+    n = len(read_group(group_dir)["seeds"])
+    like = _abstract_group(cfg, n)
+    ck = SG.GroupCheckpointer(group_dir)
+    try:
+        states = ck.restore(like, SG.seed_mesh(jax.local_devices()[:1]), step)
+    finally:
+        ck.close()
+    host = SG.index_tree(jax.device_get(states), index, n)
+    return cfg, jax.tree_util.tree_map(jnp.asarray, host)
+
+
+def _write_group_json(group_dir: str, cfg: Config, seeds, mesh, extra=None) -> None:
+    import jax
+
+    from dscpp_jax.run_logging import library_versions
+    payload = {"seeds": list(seeds), "config": cfg.override(seed=seeds[0]).to_dict(), "command": " ".join(sys.argv),
+               "devices": [str(d) for d in jax.devices()], "mesh": {"seeds": int(mesh.size)},
+               "process_count": jax.process_count(), "versions": library_versions()}
+    payload.update(extra or {})
+    with open(os.path.join(group_dir, GROUP_FILE), "w") as f:
+        json.dump(payload, f, indent=2, sort_keys=True)
+
+
+def _done(cfg: Config, env_steps: float, episodes: float) -> bool:
+    """As cli._schedule_done, for one seed's host counters."""
+    if env_steps >= cfg.total_env_steps:
+        return True
+    return cfg.total_episodes > 0 and episodes >= cfg.total_episodes
+
+
+def train_group(cfg: Config, seeds: Sequence[int], group_dir: Optional[str] = None,
+                resume: bool = False, time_budget: Optional[float] = None, progress: bool = True,
+                max_iterations: Optional[int] = None, mesh=None, plot: bool = False):
+    """Train (or resume) a seed group; returns (group state, group_dir, per-seed eval summaries).
+
+    `cfg.seed` is ignored: seed i of the group uses seeds[i]. Stops when every seed's schedule is
+    over (a seed that is done earlier is frozen where its separate run would have stopped), on
+    Ctrl-C, at the time budget or at `max_iterations` group iterations."""
+    import jax
+
+    from dscpp_jax import seed_group as SG
+    from dscpp_jax import trainer as T
+    from dscpp_jax.cli import TrainingDiverged, _check_finite, _is_ant, _main_thread, _previous_wall
+    from dscpp_jax.run_logging import RunLogger, read_config, write_config
+
+    seeds = tuple(int(s) for s in seeds)
+    n = len(seeds)
+    mesh = SG.seed_mesh() if mesh is None else mesh
+    SG.check_group_size(n, mesh)
+    cfg = cfg.validate()
+    lead = jax.process_index() == 0
+    if group_dir is None:
+        group_dir = default_group_dir(cfg, seeds, stamp=_shared_stamp())
+    if resume and not is_group_dir(group_dir):
+        raise ValueError(f"--resume needs an existing group directory (with {GROUP_FILE}), got "
+                         f"{group_dir!r}")
+    cfgs = [cfg.override(seed=s) for s in seeds]
+    dirs = [seed_dir(group_dir, s) for s in seeds]
+    if lead:
+        for d in dirs:
+            os.makedirs(d, exist_ok=True)
+    if _is_ant(cfg) and jax.default_backend() == "cpu":
+        print(f"WARNING: {cfg.env} is an MJX ant environment meant for a GPU; on a CPU it is very "
+              f"slow. Use a point-mass twin (e.g. point_{cfg.env}) for CPU runs.", file=sys.stderr)
+
+    states = SG.init_group(seeds, cfg, mesh)
+    ckpt = SG.GroupCheckpointer(group_dir, keep=cfg.keep_checkpoints)
+    restored = resume and ckpt.latest_step() is not None
+    if restored:
+        states = ckpt.restore(states, mesh)
+    c = SG.to_host(states.counters)
+    env_steps = np.asarray(c.env_steps, float)
+    episodes = np.asarray(c.episodes, float)
+    iters = np.asarray(c.iteration, int)
+    start_iter = int(iters.max())
+    if restored:
+        print(f"resumed group {group_dir} at iteration {start_iter} (seeds {list(seeds)})",
+              file=sys.stderr)
+    elif lead:
+        env_cfg = dataclasses.asdict(T.make_env(cfg).config)
+        _write_group_json(group_dir, cfg, seeds, mesh, {"env": env_cfg})
+        for i, (d, c_) in enumerate(zip(dirs, cfgs)):
+            write_config(d, c_.to_dict(), {"command": " ".join(sys.argv), "env": env_cfg,
+                                           "group": os.path.abspath(group_dir),
+                                           "group_index": i})
+    loggers = [RunLogger(d, resume_iteration=int(it)) for d, it in zip(dirs, iters)] if lead else []
+    walls = [_previous_wall(d) for d in dirs] if lead else [0.0] * n
+
+    stop = {"flag": False}
+
+    def on_sigint(signum, frame):
+        if stop["flag"]:
+            raise KeyboardInterrupt
+        stop["flag"] = True
+        print("\ninterrupt: finishing this iteration, saving a checkpoint of the group, then "
+              "exiting (Ctrl-C again to abort without saving)", file=sys.stderr)
+
+    old_handler = signal.signal(signal.SIGINT, on_sigint) if _main_thread() else None
+    pbar = None
+    if progress and lead:
+        try:
+            from tqdm import tqdm
+            pbar = tqdm(total=cfg.total_env_steps * n, initial=int(env_steps.sum()), unit="step",
+                        dynamic_ncols=True, desc=f"{cfg.env}/{cfg.algo} x{n} seeds")
+        except Exception:  # noqa: BLE001
+            pbar = None
+    t_start = time.time()
+    last_eval = np.full((n,), np.nan)
+    options = np.full((n,), np.nan)
+    saved_iter = start_iter
+    group_it = start_iter
+    try:
+        while True:
+            active = np.array([not _done(c_, e, p) for c_, e, p in zip(cfgs, env_steps, episodes)])
+            if not active.any():
+                break
+            if max_iterations is not None and group_it - start_iter >= max_iterations:
+                break
+            prev = states
+            t0 = time.time()
+            states, m = SG.train_step_group(states, active, mesh)
+            m = {k: np.asarray(v, float) for k, v in SG.to_host(m).items()}
+            dt = time.time() - t0
+            bad = {seeds[i]: b for i in range(n) if active[i]
+                   for b in [_check_finite({k: v[i] for k, v in m.items()})] if b}
+            if bad:
+                ckpt.save(group_it, prev)
+                which = "; ".join(f"seed {s}: {b}" for s, b in bad.items())
+                raise TrainingDiverged(
+                    f"learning diverged at iteration {group_it + 1} ({which}); the whole group "
+                    f"stopped. The last finite group state was saved (iteration {group_it}) under "
+                    f"{group_dir}/checkpoints. Lower the learning rates (td3_lr, dyn_lr) or the "
+                    f"updates per step, or start a group without seed(s) {sorted(bad)}.")
+            group_it += 1
+            env_steps = np.where(active, m["counters/env_steps"], env_steps)
+            episodes = np.where(active, m["counters/episodes"], episodes)
+            finished = active & np.array([_done(c_, e, p) for c_, e, p in
+                                          zip(cfgs, env_steps, episodes)])
+            its = np.where(active, m["counters/iteration"], iters).astype(int)
+            iters = its
+            due = active & (((its % cfg.eval_every == 0) | finished) if cfg.eval_every
+                            else np.zeros((n,), bool))
+            ev = None
+            if due.any():
+                ev, _ = SG.evaluate_group(states, mesh=mesh)
+            if "options/num_options" in m:
+                options = np.where(active, m["options/num_options"], options)
+            per_seed_rate = cfg.steps_per_iteration_total / max(dt, 1e-9)
+            for i in range(n):
+                if not active[i]:
+                    continue
+                row = {"iteration": int(its[i]), "env_steps": env_steps[i], "episodes": episodes[i],
+                       "wall_clock": walls[i] + time.time() - t_start, "time/iteration_s": dt,
+                       "time/env_steps_per_s": per_seed_rate,
+                       "time/group_env_steps_per_s": per_seed_rate * int(active.sum())}
+                row.update({k: float(v[i]) for k, v in m.items()
+                            if not k.startswith("counters/")})
+                if due[i]:
+                    row.update(ev[i])
+                    last_eval[i] = ev[i]["eval/success_rate"]
+                if lead:
+                    loggers[i].log(row)
+            rate = per_seed_rate * int(active.sum())
+            if lead and pbar is not None:
+                pbar.update(int(env_steps.sum()) - pbar.n)
+                pbar.set_postfix(eval_mean=f"{np.nanmean(last_eval):.2f}" if np.isfinite(
+                    last_eval).any() else "nan",
+                    eval_min=f"{np.nanmin(last_eval):.2f}" if np.isfinite(last_eval).any() else "nan",
+                    options=_range(options), steps_per_s=f"{rate:.0f}", refresh=False)
+            elif lead and due.any():
+                print(f"[{time.time() - t_start:7.0f}s] it {group_it} env_steps/seed "
+                      f"{int(env_steps.max())} episodes {int(episodes.sum())} eval_success mean "
+                      f"{np.nanmean(last_eval):.2f} min {np.nanmin(last_eval):.2f} options "
+                      f"{_range(options)} steps/s (all seeds) {rate:.0f}", flush=True)
+            if cfg.checkpoint_every and group_it % cfg.checkpoint_every == 0:
+                ckpt.save(group_it, states)
+                saved_iter = group_it
+            over = time_budget is not None and time.time() - t_start >= time_budget
+            stop_now, over = _agree(np.array([stop["flag"], over]))
+            if stop_now:
+                break
+            if over:
+                print(f"time budget of {time_budget:.0f}s reached", file=sys.stderr)
+                break
+        if group_it != saved_iter or ckpt.latest_step() is None:
+            ckpt.save(group_it, states)
+        if stop["flag"]:
+            print(f"saved a checkpoint of the group at iteration {group_it}; continue with "
+                  f"--resume {group_dir}", file=sys.stderr)
+    finally:
+        if pbar is not None:
+            pbar.close()
+        for lg in loggers:
+            lg.close()
+        ckpt.close()
+        if old_handler is not None:
+            signal.signal(signal.SIGINT, old_handler)
+
+    summaries, res = SG.evaluate_group(states, num_episodes=cfg.eval_episodes, mesh=mesh)
+    c = SG.to_host(states.counters)               # collectives: every process takes part
+    host = SG.to_host(states) if plot else None
+    if lead:
+        for i, d in enumerate(dirs):
+            out = dict(summaries[i], iteration=int(c.iteration[i]), env_steps=int(c.env_steps[i]),
+                       episodes_trained=int(c.episodes[i]), seed=seeds[i])
+            with open(os.path.join(d, "eval.json"), "w") as f:
+                json.dump(out, f, indent=2)
+        if plot:
+            _plot_group(group_dir, cfgs, dirs, host, res)
+    return states, group_dir, summaries
+
+
+def _range(x) -> str:
+    x = np.asarray(x, float)
+    x = x[np.isfinite(x)]
+    if not x.size:
+        return "-"
+    lo, hi = int(x.min()), int(x.max())
+    return str(lo) if lo == hi else f"{lo}-{hi}"
+
+
+def _plot_group(group_dir, cfgs, dirs, host, res) -> None:
+    """Plots of a group from its host copy `host` (process 0 only)."""
+    from dscpp_jax import plots
+    from dscpp_jax import seed_group as SG
+    c = host.counters
+    n = len(dirs)
+    plots.plot_curves(dirs, os.path.join(group_dir, "plots", "curves.png"))
+    for i, (cfg, d) in enumerate(zip(cfgs, dirs)):
+        out = os.path.join(d, "plots")
+        plots.plot_curves([d], os.path.join(out, "curves.png"))
+        plots.plot_trajectory(cfg, SG.index_tree(res, i), os.path.join(out, "trajectory.png"),
+                              title=f"{cfg.env} {cfg.algo} seed {cfg.seed}, iteration "
+                                    f"{int(c.iteration[i])}, {int(c.env_steps[i])} env steps")
+        plots.plot_classifiers(cfg, SG.index_tree(host, i, n), os.path.join(out, "classifiers.png"))
+
+
+def resume_config(group_dir: str, overrides: dict) -> tuple:
+    """(config, seeds) of a group to resume, with the schedule-only `overrides` applied."""
+    g = read_group(group_dir)
+    cfg = Config.from_dict(g["config"])
+    allowed = {"total_env_steps", "total_episodes", "eval_every", "eval_episodes",
+               "checkpoint_every", "keep_checkpoints", "log_every"}
+    bad = sorted(set(overrides) - allowed)
+    if bad:
+        raise ValueError(f"--resume cannot change {bad}: they change the state's shapes or the "
+                         f"algorithm; allowed on resume: {sorted(allowed)}")
+    return cfg.override(**overrides), tuple(g["seeds"])
+
+
+def update_configs(group_dir: str, cfg: Config, seeds) -> None:
+    """After a resume with a changed schedule: record it in group.json and each config.json."""
+    from dscpp_jax.run_logging import read_config, write_config
+    g = read_group(group_dir)
+    g["config"] = cfg.to_dict()
+    with open(os.path.join(group_dir, GROUP_FILE), "w") as f:
+        json.dump(g, f, indent=2, sort_keys=True)
+    for s in seeds:
+        d = seed_dir(group_dir, s)
+        payload = read_config(d)
+        write_config(d, cfg.override(seed=s).to_dict(),
+                     {k: v for k, v in payload.items() if k not in ("config", "versions")})
