@@ -9,8 +9,9 @@ ALGO  ?= mb_dscpp
 SEED  ?= 0
 ARGS  ?=
 RUN   ?=
+SEEDS ?=
 
-.PHONY: install test train eval plot bench-env bench-learners bench-options clean
+.PHONY: install test train eval plot bench-env bench-learners bench-options bench-seeds clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -29,7 +30,7 @@ test: $(STAMP)
 	  exit $$fail
 
 train: $(STAMP)
-	$(BIN)/python -m dscpp_jax.cli train --env $(ENV) --algo $(ALGO) --seed $(SEED) $(ARGS)
+	$(BIN)/python -m dscpp_jax.cli train --env $(ENV) --algo $(ALGO) $(if $(SEEDS),--seeds $(SEEDS),--seed $(SEED)) $(ARGS)
 
 eval: $(STAMP)
 	@test -n "$(RUN)" || (echo "usage: make eval RUN=runs/<run-dir> [ARGS=...]"; exit 2)
@@ -47,6 +48,9 @@ bench-learners: $(STAMP)
 
 bench-options: $(STAMP)
 	$(BIN)/python experiments/bench_options.py $(ARGS)
+
+bench-seeds: $(STAMP)
+	$(BIN)/python experiments/bench_seeds.py $(ARGS)
 
 clean:
 	rm -rf $(VENV) .pytest_cache
