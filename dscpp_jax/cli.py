@@ -457,6 +457,13 @@ def _add_group_arguments(t: argparse.ArgumentParser) -> None:
 def cmd_train_group(args) -> int:
     from dscpp_jax import group_train
     from dscpp_jax import seed_group as SG
+    if args.seeds is None and not args.resume:
+        raise ValueError("--coordinator / --distributed train a seed group: add --seeds LIST")
+    if args.seeds is not None and not args.resume:   # bad input fails before any device is used
+        if getattr(args, "seed_given", False):
+            raise ValueError("give either --seed N (one run) or --seeds LIST (a seed group), "
+                             "not both")
+        seeds = SG.parse_seeds(args.seeds)
     if _distributed(args):   # before anything touches a device
         SG.initialize_distributed(args.coordinator, args.num_processes, args.process_id)
     if args.resume:
@@ -472,12 +479,6 @@ def cmd_train_group(args) -> int:
         cfg, seeds = group_train.resume_config(args.resume, extra)
         group_dir = args.resume
     else:
-        if args.seeds is None:
-            raise ValueError("--coordinator / --distributed train a seed group: add --seeds LIST")
-        if getattr(args, "seed_given", False):
-            raise ValueError("give either --seed N (one run) or --seeds LIST (a seed group), "
-                             "not both")
-        seeds = SG.parse_seeds(args.seeds)
         cfg = config_from_args(args)
         group_dir = args.run_dir
     try:

@@ -231,7 +231,8 @@ def train_group(cfg: Config, seeds: Sequence[int], group_dir: Optional[str] = No
             bad = {seeds[i]: b for i in range(n) if active[i]
                    for b in [_check_finite({k: v[i] for k, v in m.items()})] if b}
             if bad:
-                ckpt.save(group_it, prev)
+                if saved_iter != group_it or ckpt.latest_step() is None:
+                    ckpt.save(group_it, prev)
                 which = "; ".join(f"seed {s}: {b}" for s, b in bad.items())
                 raise TrainingDiverged(
                     f"learning diverged at iteration {group_it + 1} ({which}); the whole group "
