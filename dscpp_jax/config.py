@@ -29,6 +29,10 @@ HOST_ONLY_DEFAULTS = dict(seed=0, total_env_steps=1, total_episodes=0, eval_ever
                           log_every=1, checkpoint_every=0, keep_checkpoints=1, preset="paper")
 
 
+# Values of fields that a saved config may lack because it predates them: what those runs used.
+LEGACY_DEFAULTS = dict(physics="jax")
+
+
 @dataclass(frozen=True)
 class Config:
     """Everything static about a training run (sizes, schedule, hyperparameters)."""
@@ -36,6 +40,9 @@ class Config:
     # --- task and algorithm -------------------------------------------------------------------
     env: str = "point_u_maze"          # envs.make name
     ant_integrator: str = "Euler"      # ant physics: Euler (fast) | RK4 (D4RL's) | implicitfast
+    physics: str = "auto"              # ant physics back end: jax (MJX) | warp (MuJoCo Warp) |
+                                       # auto (warp on a GPU with warp-lang installed, else jax)
+    group_size: int = 1                # seeds trained together in one program (seed groups)
     algo: str = "mb_dscpp"             # one of ALGOS
     subgoal: str = "robust"            # robust | dp
     seed: int = 0
@@ -183,6 +190,7 @@ class Config:
     @classmethod
     def from_dict(cls, d: dict) -> "Config":
         names = {f.name for f in dataclasses.fields(cls)}
+        d = {**LEGACY_DEFAULTS, **d}
         return cls(**{k: v for k, v in d.items() if k in names})
 
     def validate(self) -> "Config":
@@ -236,6 +244,9 @@ class Config:
              "td3_upright_weight needs a body that can tip over (the ant envs); the point mass "
              "cannot tilt: set it to 0")
         need(self.td3_action_l2 >= 0, "td3_action_l2 must be >= 0 (0: off)")
+        need(self.physics in ("auto", "jax", "warp"),
+             f"physics={self.physics!r}; choose auto, jax (MJX) or warp (MuJoCo Warp)")
+        need(self.group_size >= 1, f"group_size={self.group_size} must be >= 1")
         need(self.ant_integrator in ("Euler", "RK4", "implicitfast"),
              f"ant_integrator must be Euler, RK4 or implicitfast, got {self.ant_integrator!r}")
         for name in ("mpc_backend", "svm_backend"):

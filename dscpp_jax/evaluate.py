@@ -17,6 +17,7 @@ import jax.numpy as jnp
 
 from dscpp_jax import trainer as T
 from dscpp_jax.config import Config
+from envs.goal_env import select_states
 
 
 @flax.struct.dataclass
@@ -37,8 +38,8 @@ class EvalResult:
 
 def _eval_impl(state: T.TrainState, key, num_episodes: int, starts=None) -> EvalResult:
     config: Config = state.config
-    env = T.make_env(config)
     N, L, K = num_episodes, config.episode_length, config.max_options
+    env = T.make_env(config, worlds=config.group_size * N)
     k_reset, k_run = jax.random.split(key)
     ks = jax.random.split(k_reset, N)
     if starts is None:
@@ -62,8 +63,7 @@ def _eval_impl(state: T.TrainState, key, num_episodes: int, starts=None) -> Eval
                                evaluation=True)
         acts = T._policy_actions(config, td3, dyn, obs, ex.subgoal, k_act, False, 0.0)
         nes = jax.vmap(env.step)(es, acts)
-        nes = jax.tree_util.tree_map(
-            lambda n, o: jnp.where(active.reshape((N,) + (1,) * (n.ndim - 1)), n, o), nes, es)
+        nes = select_states(active, nes, es)
         ex = T._push_traj(ex, nes.obs[:, :2])
         done = (nes.done > 0) & active
         ended, osucc = T._option_end(config, env, chain, ex, nes.obs[:, :2], done)

@@ -30,6 +30,7 @@ import jax
 import jax.numpy as jnp
 
 from dscpp_jax.config import Config
+from envs.goal_env import select_state, select_states
 from dscpp_jax.replay import Replay, TrajStep, replay_add, replay_flatten, replay_init, replay_sample
 from dscpp_jax.td3 import TD3Config, TD3State, td3_init, td3_explore, td3_act, td3_updates, td3_value, \
     td3_random_prob
@@ -85,12 +86,40 @@ class TrainState:
 # ------------------------------------------------------------------------------------------------
 # Component configs derived from the run config
 # ------------------------------------------------------------------------------------------------
+SEED_AXIS = "seeds"
+"""The vmap axis name of a seed group (see `train_step_impl`'s ``seed_axis``)."""
+
+
+def resolve_physics(config: Config) -> Config:
+    """`config` with ``physics="auto"`` made concrete: MuJoCo Warp on a GPU where `warp-lang` is
+    installed, MJX-JAX elsewhere (point-mass envs: "jax", they have no MuJoCo physics)."""
+    if config.physics != "auto":
+        return config
+    if config.env.startswith("point_"):
+        return config.override(physics="jax")
+    from envs.ant_maze import warp_available
+    use_warp = jax.default_backend() == "gpu" and warp_available()
+    return config.override(physics="warp" if use_warp else "jax")
+
+
+def make_env(config: Config, worlds: Optional[int] = None):
+    """The env of `config`. ``worlds``: the most envs stepped together (all vmapped axes
+    multiplied out); it sizes MuJoCo Warp's shared contact buffers (default: the training batch,
+    ``group_size * num_envs``)."""
+    config = resolve_physics(config)
+    if worlds is None:
+        worlds = config.group_size * config.num_envs
+    return _make_env(config.env, config.episode_length, config.goal_tolerance,
+                     config.ant_integrator, config.physics, int(worlds))
+
+
 @functools.lru_cache(maxsize=None)
-def make_env(config: Config):
+def _make_env(name, episode_length, goal_tolerance, integrator, physics, worlds):
     import envs
-    kw = {} if config.env.startswith("point_") else dict(integrator=config.ant_integrator)
-    return envs.make(config.env, episode_length=config.episode_length,
-                     goal_tolerance=config.goal_tolerance, **kw)
+    kw = {} if name.startswith("point_") else dict(
+        integrator=integrator, physics=physics,
+        **({"warp_worlds": worlds} if physics == "warp" else {}))
+    return envs.make(name, episode_length=episode_length, goal_tolerance=goal_tolerance, **kw)
 
 
 def td3_config(config: Config) -> TD3Config:
@@ -145,14 +174,14 @@ def init(key: jax.Array, config: Config) -> TrainState:
 
     The state carries `config.device_view()`: host-only fields (seed, schedule length, logging
     cadence) are reset there so that changing them never recompiles `train_step`."""
-    config = config.validate().device_view()
+    config = resolve_physics(config.validate()).device_view()
     make_env(config)  # unknown env names fail here, not inside a trace
     return _init_jit(key, config)
 
 
 def init_impl(key: jax.Array, config: Config) -> TrainState:
     """Un-jitted `init` (for use inside other traced code)."""
-    config = config.device_view()
+    config = resolve_physics(config).device_view()
     env = make_env(config)
     B, od, ad = config.num_envs, env.observation_size, env.action_size
     k_env, k_td3, k_dyn, k_run = jax.random.split(key, 4)
@@ -265,7 +294,20 @@ def _push_traj(ex: ExecState, xy):
 # ------------------------------------------------------------------------------------------------
 # train_step
 # ------------------------------------------------------------------------------------------------
-def _rollout(state: TrainState, key) -> Tuple[TrainState, Dict[str, jax.Array]]:
+def _any_seed(pred, seed_axis):
+    """Scalar bool: `pred` holds in some run of the enclosing seed vmap (itself without one)."""
+    if seed_axis is None:
+        return pred
+    return jax.lax.psum(pred.astype(jnp.int32), seed_axis) > 0
+
+
+def _all_seeds(pred, seed_axis):
+    if seed_axis is None:
+        return pred
+    return ~_any_seed(~pred, seed_axis)
+
+
+def _rollout(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[str, jax.Array]]:
     config = state.config
     env = make_env(config)
     B = config.num_envs
@@ -283,12 +325,16 @@ def _rollout(state: TrainState, key) -> Tuple[TrainState, Dict[str, jax.Array]]:
         xy = obs[:, :2]
         ex = _choose_options(config, env, chain, dp_table, td3, ex, obs, k_opt)
         rand_acts = jax.random.uniform(k_rand, (B, act_dim), jnp.float32, -1.0, 1.0)
+        # under a seed vmap a batched predicate would run the policy (MPC) on every step of
+        # every seed: branch on "all seeds warm up", select per seed inside
         acts = jax.lax.cond(
-            warmup, lambda: rand_acts,
-            lambda: _policy_actions(config, td3, dyn, obs, ex.subgoal, k_act, True, rand_prob))
+            _all_seeds(warmup, seed_axis), lambda: rand_acts,
+            lambda: jnp.where(warmup, rand_acts, _policy_actions(
+                config, td3, dyn, obs, ex.subgoal, k_act, True, rand_prob)))
         nes = jax.vmap(env.step)(es, acts)
         next_xy = nes.obs[:, :2]
         nan = nes.info["nan"] > 0
+        overflow = jnp.any(nes.info["overflow"] > 0)
         ex = _push_traj(ex, next_xy)
         ended, success = _option_end(config, env, chain, ex, next_xy, nes.done)
         # record option outcomes (not during warm-up: random actions say nothing about options)
@@ -307,6 +353,7 @@ def _rollout(state: TrainState, key) -> Tuple[TrainState, Dict[str, jax.Array]]:
         acc["option_events"] = acc["option_events"] + jnp.sum(ended)
         acc["option_successes"] = acc["option_successes"] + jnp.sum(ended & success)
         acc["nan_episodes"] = acc["nan_episodes"] + jnp.sum(nan)
+        acc["overflow_steps"] = acc["overflow_steps"] + overflow.astype(jnp.int32)
         acc["ep_len_sum"] = acc["ep_len_sum"] + jnp.sum(jnp.where(done, nes.info["steps"], 0))
         ex = ex.replace(option=jnp.where(ended, NO_OPTION, ex.option))
 
@@ -317,20 +364,18 @@ def _rollout(state: TrainState, key) -> Tuple[TrainState, Dict[str, jax.Array]]:
                 starts = jax.vmap(env.sample_start)(jax.random.split(k_start, B))
                 fresh_div = jax.vmap(env.reset_at)(ks, starts)
                 fresh_task = jax.vmap(env.reset)(ks)
-                fresh = jax.tree_util.tree_map(lambda a, b: jnp.where(warmup, a, b),
-                                               fresh_task, fresh_div)
+                fresh = select_state(warmup, fresh_task, fresh_div)
             else:
                 fresh = jax.vmap(env.reset)(ks)
-            return jax.tree_util.tree_map(
-                lambda f, n: jnp.where(done.reshape((B,) + (1,) * (n.ndim - 1)), f, n), fresh, nes)
+            return select_states(done, fresh, nes)
 
-        nes = jax.lax.cond(jnp.any(done), reset_all, lambda _: nes, None)
+        nes = jax.lax.cond(_any_seed(jnp.any(done), seed_axis), reset_all, lambda _: nes, None)
         return (nes, ex, chain, replay, model_replay, acc), None
 
     K = config.max_options
     z = jnp.zeros((), jnp.int32)
     acc0 = dict(episodes=z, episode_successes=z, option_events=z, option_successes=z,
-                nan_episodes=z, ep_len_sum=z)
+                nan_episodes=z, ep_len_sum=z, overflow_steps=z)
     carry = (state.env_state, state.exec, state.chain, state.replay, state.model_replay, acc0)
     carry, _ = jax.lax.scan(body, carry, jax.random.split(key, config.steps_per_iter))
     es, ex, chain, replay, model_replay, acc = carry
@@ -354,20 +399,22 @@ def _rollout(state: TrainState, key) -> Tuple[TrainState, Dict[str, jax.Array]]:
                                           acc["option_successes"] / jnp.maximum(acc["option_events"], 1),
                                           jnp.nan),
         "train/nan_physics_steps": acc["nan_episodes"].astype(jnp.float32),
+        "train/physics_overflow_steps": acc["overflow_steps"].astype(jnp.float32),
         "train/warmup": warmup.astype(jnp.float32),
         "train/random_action_prob": rand_prob,
     }
     return state, metrics
 
 
-def _learn(state: TrainState, key) -> Tuple[TrainState, Dict[str, jax.Array]]:
+def _learn(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[str, jax.Array]]:
     config = state.config
     env = make_env(config)
     tcfg = td3_config(config)
     k_td3, k_dyn, k_pre = jax.random.split(key, 3)
     metrics: Dict[str, jax.Array] = {}
     td3, tm = td3_updates(tcfg, state.td3, state.replay, k_td3, config.td3_updates,
-                          td3_sample_fn(config, env), sample_block=config.td3_sample_block)
+                          td3_sample_fn(config, env), sample_block=config.td3_sample_block,
+                          seed_axis=seed_axis)
     metrics.update({f"td3/{k}": v for k, v in tm.items()})
     finite = {"td3": _all_finite(td3)}
     dyn = state.dyn
@@ -379,17 +426,17 @@ def _learn(state: TrainState, key) -> Tuple[TrainState, Dict[str, jax.Array]]:
         # one longer burst once the warm-up data is in (the original's 50 epochs)
         do_pre = (~warmup) & (~counters.warmup_done)
         if config.dyn_pretrain_steps > 0:
-            dyn = jax.lax.cond(
-                do_pre,
-                lambda d: _dynamics_updates(config, d, state.model_replay, k_pre,
-                                                  config.dyn_pretrain_steps)[0],
-                lambda d: d, dyn)
+            def pretrain(d):
+                new = _dynamics_updates(config, d, state.model_replay, k_pre,
+                                        config.dyn_pretrain_steps)[0]
+                return jax.tree_util.tree_map(lambda a, b: jnp.where(do_pre, a, b), new, d)
+            dyn = jax.lax.cond(_any_seed(do_pre, seed_axis), pretrain, lambda d: d, dyn)
         counters = counters.replace(warmup_done=counters.warmup_done | do_pre)
         metrics.update({f"dynamics/{k}": v for k, v in dm.items()})
         finite["dynamics"] = _all_finite(dyn)
     chain, dp_table = state.chain, state.dp_table
     if config.hierarchical:
-        chain = _refit(config, chain)
+        chain = _refit(config, chain, seed_axis)
         chain = _grow_chain(config, chain, jnp.asarray(env.start, jnp.float32))
         if config.subgoal == "dp":
             dp_table = _dp_value_table(config, chain, _value_fn(config, td3))
@@ -408,12 +455,18 @@ def _all_finite(tree) -> jax.Array:
     return jnp.all(jnp.stack(leaves)) if leaves else jnp.ones((), bool)
 
 
-def train_step_impl(state: TrainState) -> Tuple[TrainState, Dict[str, jax.Array]]:
-    """One iteration (un-jitted; use `train_step`)."""
+def train_step_impl(state: TrainState, seed_axis: Optional[str] = None
+                    ) -> Tuple[TrainState, Dict[str, jax.Array]]:
+    """One iteration (un-jitted; use `train_step`).
+
+    ``seed_axis``: when this runs under ``jax.vmap(..., axis_name=seed_axis)`` over independent
+    runs (a seed group), name that axis. Work that only some runs need (MPC during warm-up, resets,
+    the dynamics pre-training burst, classifier refits, delayed actor steps) then runs when any run
+    needs it, instead of on every call as a vmapped ``lax.cond`` would. Results are the same."""
     key, k_roll, k_learn = jax.random.split(state.key, 3)
     state = state.replace(key=key)
-    state, m_roll = _rollout(state, k_roll)
-    state, m_learn = _learn(state, k_learn)
+    state, m_roll = _rollout(state, k_roll, seed_axis)
+    state, m_learn = _learn(state, k_learn, seed_axis)
     c = state.counters
     metrics = {**m_roll, **m_learn,
                "counters/env_steps": c.env_steps.astype(jnp.float32),
@@ -422,8 +475,14 @@ def train_step_impl(state: TrainState) -> Tuple[TrainState, Dict[str, jax.Array]
     return state, metrics
 
 
-train_step = jax.jit(train_step_impl)
+train_step = jax.jit(train_step_impl, static_argnames=("seed_axis",))
 """Jitted `train_step(state) -> (state, metrics)`; compiles once per Config."""
+
+
+def train_step_group_impl(states: TrainState) -> Tuple[TrainState, Dict[str, jax.Array]]:
+    """`train_step_impl` over a leading seed axis (un-jitted): each run as if alone."""
+    return jax.vmap(functools.partial(train_step_impl, seed_axis=SEED_AXIS),
+                    axis_name=SEED_AXIS)(states)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -567,9 +626,9 @@ def _record_outcomes(config: Config, chain, ex: ExecState, success, events):
                            events, start_obs=ex.start_obs)
 
 
-def _refit(config: Config, chain):
+def _refit(config: Config, chain, seed_axis=None):
     from dscpp_jax.options import refit
-    return refit(chain)
+    return refit(chain, seed_axis=seed_axis)
 
 
 def _grow_chain(config: Config, chain, start_xy):
