@@ -70,11 +70,6 @@ class Config:
     td3_lr: float = -1.0               # < 0: the algorithm's preset (1e-5 model based, 3e-4 free)
     td3_clip_targets: bool = False     # clip TD targets to [-1 / (1 - discount), 0], the range of
                                        # every value under the 0 / -1 reward (not in the original)
-    td3_absorb_fallen: bool = False    # ant: a transition into a state on its back (upright < 0)
-                                       # gets the value of never reaching the goal,
-                                       # -1 / (1 - discount) (her.absorb_failures; not in the original)
-    td3_upright_weight: float = 0.0    # ant: TD3 reward - W * max(0, td3_upright_min - upright(s'))
-    td3_upright_min: float = 0.5       # per step (her.tilt_penalty; 0: off, not in the original)
     td3_action_l2: float = 0.0         # actor loss + L2 * mean(a^2) (OpenAI Baselines' HER: 1.0;
                                        # 0: off, as in the original)
     discount: float = 0.99
@@ -98,8 +93,6 @@ class Config:
     mpc_horizon: int = 7
     mpc_discount: float = 0.95
     mpc_dtype: str = "float32"
-    mpc_upright_weight: float = 0.0    # ant: cost per unit of predicted tilt below mpc_upright_min
-    mpc_upright_min: float = 0.5       # (0: off, the paper's eq. 2; see mpc.MPCConfig)
     mpc_backend: str = "auto"          # auto: the fused kernel on a GPU with bfloat16, else XLA
     svm_backend: str = "auto"          # auto: the fused SMO kernel on a GPU, else the XLA loop
 
@@ -219,22 +212,6 @@ class Config:
              f"td3_sample_block must be >= 1 (1: one replay sample per gradient step), got "
              f"{self.td3_sample_block}")
         need(self.mpc_dtype in ("float32", "bfloat16"), "mpc_dtype must be float32 or bfloat16")
-        need(self.mpc_upright_weight >= 0 and -1.0 <= self.mpc_upright_min <= 1.0,
-             "mpc_upright_weight must be >= 0 and mpc_upright_min in [-1, 1]")
-        need(self.mpc_upright_weight == 0 or not self.env.startswith("point_"),
-             "mpc_upright_weight needs a body that can tip over (the ant envs); the point mass has "
-             "no orientation: set it to 0")
-        need(not self.td3_absorb_fallen or not self.env.startswith("point_"),
-             "td3_absorb_fallen needs a body that can tip over (the ant envs); the point mass "
-             "cannot fall: set it to false")
-        need(not self.td3_absorb_fallen or self.discount < 1.0,
-             "td3_absorb_fallen needs discount < 1 (with discount 1 a fallen state's value is "
-             "unbounded); lower discount or set td3_absorb_fallen=false")
-        need(self.td3_upright_weight >= 0 and -1.0 <= self.td3_upright_min <= 1.0,
-             "td3_upright_weight must be >= 0 and td3_upright_min in [-1, 1]")
-        need(self.td3_upright_weight == 0 or not self.env.startswith("point_"),
-             "td3_upright_weight needs a body that can tip over (the ant envs); the point mass "
-             "cannot tilt: set it to 0")
         need(self.td3_action_l2 >= 0, "td3_action_l2 must be >= 0 (0: off)")
         need(self.ant_integrator in ("Euler", "RK4", "implicitfast"),
              f"ant_integrator must be Euler, RK4 or implicitfast, got {self.ant_integrator!r}")
