@@ -129,9 +129,8 @@ def td3_config(config: Config) -> TD3Config:
               replay_capacity=config.replay_capacity,
               actor_lr=config.effective_td3_lr, critic_lr=config.effective_td3_lr,
               action_l2=config.td3_action_l2)
-    if config.td3_clip_targets:   # the value range under the reward (tilt penalty included)
-        worst = 1.0 + config.td3_upright_weight * (1.0 + config.td3_upright_min)
-        kw.update(target_range=(-worst / (1.0 - config.discount), 0.0))
+    if config.td3_clip_targets:   # the value range under the 0 / -1 reward
+        kw.update(target_range=(-1.0 / (1.0 - config.discount), 0.0))
     if config.random_action_prob >= 0:
         kw.update(random_action_prob=config.random_action_prob)
         if config.model_based:
@@ -488,26 +487,15 @@ def train_step_group_impl(states: TrainState) -> Tuple[TrainState, Dict[str, jax
 # ------------------------------------------------------------------------------------------------
 # Thin adapters over the component modules (one place to follow their signatures)
 # ------------------------------------------------------------------------------------------------
-def td3_sample_fn(config: Config, env) -> Any:
+def td3_sample_fn(config: Config, env: Any = None) -> Any:
     """``sample_fn(key, replay, n) -> Transition`` for TD3: HER relabelling within an option's
-    segment (the episode's for the flat algorithms), with ``td3_upright_weight`` the ant's tilt
-    charged per step (:func:`dscpp_jax.her.tilt_penalty`), and with ``td3_absorb_fallen`` its
-    falls made absorbing (:func:`dscpp_jax.her.absorb_failures`)."""
+    segment (the episode's for the flat algorithms). ``env`` is unused (kept for callers)."""
     max_seg = config.option_timeout if config.hierarchical else config.episode_length
 
     def sample_fn(k, buf, n):
-        batch = _her_sample(k, buf, n, strategy=config.her_strategy,
-                            relabel_prob=config.her_relabel_prob, max_segment=max_seg,
-                            goal_tolerance=config.goal_tolerance)
-        if config.td3_upright_weight > 0 or config.td3_absorb_fallen:
-            up = env.upright(batch.next_obs)
-        if config.td3_upright_weight > 0:
-            from dscpp_jax.her import tilt_penalty
-            batch = tilt_penalty(batch, up, config.td3_upright_weight, config.td3_upright_min)
-        if config.td3_absorb_fallen:
-            from dscpp_jax.her import absorb_failures
-            batch = absorb_failures(batch, up < 0, config.discount)
-        return batch
+        return _her_sample(k, buf, n, strategy=config.her_strategy,
+                           relabel_prob=config.her_relabel_prob, max_segment=max_seg,
+                           goal_tolerance=config.goal_tolerance)
 
     return sample_fn
 
@@ -548,8 +536,7 @@ def mpc_config(config: Config):
     return MPCConfig(num_samples=config.mpc_samples, horizon=config.mpc_horizon,
                      discount=config.mpc_discount, goal_tolerance=config.goal_tolerance,
                      use_value=config.uses_value_in_mpc, compute_dtype=config.mpc_dtype,
-                     backend=config.mpc_backend, upright_weight=config.mpc_upright_weight,
-                     upright_min=config.mpc_upright_min)
+                     backend=config.mpc_backend)
 
 
 def _mpc_actions(config: Config, dyn, key, obs, goals, value_fn, value_net=None):
