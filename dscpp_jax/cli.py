@@ -48,8 +48,12 @@ def config_from_args(args) -> Config:
         if v is not None:
             kw[name] = v
     kw["seed"] = args.seed
+    if getattr(args, "physics", None):
+        kw["physics"] = args.physics
     cfg = preset(args.preset, args.env, args.algo, **kw)
     cfg.validate()
+    from dscpp_jax.trainer import resolve_physics   # record the back end that will run
+    cfg = resolve_physics(cfg)
     import envs  # unknown env names fail here, before anything is compiled
     envs.make(cfg.env)
     return cfg
@@ -168,9 +172,12 @@ def train(cfg: Optional[Config] = None, run_dir: Optional[str] = None, resume: b
         cfg = saved if cfg is None else cfg
     if cfg is None:
         raise ValueError("train() needs a Config (or resume=True with a run_dir)")
-    cfg.validate()
+    cfg = T.resolve_physics(cfg.validate())
     if run_dir is None:
         run_dir = default_run_dir(cfg)
+    if _is_ant(cfg):
+        print(f"{cfg.env}: {'MuJoCo Warp' if cfg.physics == 'warp' else 'MJX (JAX)'} physics on "
+              f"{jax.default_backend().upper()}", file=sys.stderr)
     os.makedirs(run_dir, exist_ok=True)
     if _is_ant(cfg) and jax.default_backend() == "cpu":
         print(f"WARNING: {cfg.env} is an MJX ant environment meant for a GPU; on a CPU it is very "
@@ -424,6 +431,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--preset", default="fast", choices=PRESETS)
     t.add_argument("--subgoal", default=None, choices=SUBGOALS)
+    t.add_argument("--physics", default=None, choices=("auto", "jax", "warp"),
+                   help="ant physics back end: warp (MuJoCo Warp, default on a GPU with warp-lang "
+                        "installed), jax (MJX; default elsewhere)")
     t.add_argument("--num-envs", dest="num_envs", type=int, default=None)
     t.add_argument("--steps-per-iter", dest="steps_per_iter", type=int, default=None)
     t.add_argument("--total-steps", dest="total_env_steps", type=int, default=None)

@@ -116,6 +116,14 @@ def make_env(config: Config, worlds: Optional[int] = None):
 @functools.lru_cache(maxsize=None)
 def _make_env(name, episode_length, goal_tolerance, integrator, physics, worlds):
     import envs
+    # the first call may come from inside a trace (jit/vmap of init_impl): build the env's
+    # constants eagerly so that none of them is a tracer that outlives it
+    with jax.ensure_compile_time_eval():
+        return _build_env(name, episode_length, goal_tolerance, integrator, physics, worlds)
+
+
+def _build_env(name, episode_length, goal_tolerance, integrator, physics, worlds):
+    import envs
     kw = {} if name.startswith("point_") else dict(
         integrator=integrator, physics=physics,
         **({"warp_worlds": worlds} if physics == "warp" else {}))
