@@ -12,6 +12,10 @@ from __future__ import annotations
 
 import dataclasses
 
+from envs._quiet_import import import_quietly
+
+import_quietly("mujoco.mjx")  # first, before brax imports it: no notice about the optional Warp back end
+
 from envs.goals import (EPISODE_LENGTH, GOAL_TOLERANCE, achieved_goal, goal_reached,  # noqa: F401
                         goal_reward)
 from envs.maze_layout import BUILTIN_MAPS, MazeLayout, get_layout, parse_map  # noqa: F401
