@@ -287,17 +287,18 @@ def train(cfg: Optional[Config] = None, run_dir: Optional[str] = None, resume: b
         if isinstance(e, ck.CheckpointError):
             raise
         last = ckpt.latest_step()
-        raise _write_error(run_dir, e, "write metrics.csv", resume=True,
+        raise _write_error(run_dir, e, "write the run's logs (metrics.csv)", resume=True,
                            note=f"the last checkpoint (iteration {last}) is intact"
                            if last is not None else "") from None
     finally:
         if pbar is not None:
             pbar.close()
+        ending_error = sys.exc_info()[0]   # set while an exception ends the run
         for close in (logger.close, ckpt.close):
             try:
                 close()
             except Exception:  # noqa: BLE001 - never hide the error that ended the run
-                if sys.exc_info()[0] is None:
+                if ending_error is None:
                     raise
         if old_handler is not None:
             signal.signal(signal.SIGINT, old_handler)
