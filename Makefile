@@ -15,7 +15,7 @@ RUN   ?=
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -m pip install -q -e '.[dev,tensorboard]'
+	$(BIN)/python -m pip install -q -e '.[dev,tensorboard,wandb]'
 	touch $(STAMP)
 
 install: $(STAMP)

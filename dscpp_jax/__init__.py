@@ -11,6 +11,7 @@
 Several seeds in one process: `jax.vmap(lambda k: dscpp_jax.init(k, cfg))(keys)` and
 `jax.jit(jax.vmap(dscpp_jax.train_step_impl))(states)`.
 """
+import envs  # noqa: F401  (first: imports MuJoCo MJX without the missing-Warp notice)
 from dscpp_jax.config import ALGOS, SUBGOALS, Config, preset
 from dscpp_jax.evaluate import EvalResult, Policy, evaluate, evaluate_episodes, make_policy
 from dscpp_jax.trainer import TrainState, init, make_env, train_step, train_step_impl

@@ -153,22 +153,26 @@ def _check_finite(metrics: dict) -> Optional[str]:
 
 def train(cfg: Optional[Config] = None, run_dir: Optional[str] = None, resume: bool = False,
           time_budget: Optional[float] = None, progress: bool = True,
-          max_iterations: Optional[int] = None, initial_state=None):
+          max_iterations: Optional[int] = None, initial_state=None,
+          wandb: Optional[dict] = None):
     """Train (or resume) a run; returns (state, run_dir). Saves checkpoints and metrics.csv.
 
-    `initial_state` (optional) replaces `init(PRNGKey(seed), cfg)` for a fresh run."""
+    `initial_state` (optional) replaces `init(PRNGKey(seed), cfg)` for a fresh run. `wandb`
+    (optional): `{"project": ..., "mode": ...}` also logs to Weights & Biases.
+    A directory that cannot be read or written raises a ValueError (`RunDirError`,
+    `CheckpointError`) that names the fix; what was saved before stays as it was."""
     import jax
     import numpy as np
 
     from dscpp_jax import checkpoint as ck
     from dscpp_jax import trainer as T
     from dscpp_jax.evaluate import evaluate
-    from dscpp_jax.run_logging import RunLogger, read_config, write_config
+    from dscpp_jax.run_logging import RunLogger, load_config, write_config
 
     if resume:
-        if run_dir is None or not os.path.isdir(run_dir):
-            raise ValueError(f"--resume needs an existing run directory, got {run_dir!r}")
-        saved = Config.from_dict(read_config(run_dir)["config"])
+        if run_dir is None:
+            raise ValueError("--resume needs the run directory to continue")
+        saved = load_config(run_dir)
         cfg = saved if cfg is None else cfg
     if cfg is None:
         raise ValueError("train() needs a Config (or resume=True with a run_dir)")
@@ -178,7 +182,10 @@ def train(cfg: Optional[Config] = None, run_dir: Optional[str] = None, resume: b
     if _is_ant(cfg):
         print(f"{cfg.env}: {'MuJoCo Warp' if cfg.physics == 'warp' else 'MJX (JAX)'} physics on "
               f"{jax.default_backend().upper()}", file=sys.stderr)
-    os.makedirs(run_dir, exist_ok=True)
+    try:
+        os.makedirs(run_dir, exist_ok=True)
+    except OSError as e:
+        raise _write_error(run_dir, e, "create the run directory") from None
     if _is_ant(cfg) and jax.default_backend() == "cpu":
         print(f"WARNING: {cfg.env} is an MJX ant environment meant for a GPU; on a CPU it is very "
               f"slow. Use a point-mass twin (e.g. point_{cfg.env}) for CPU runs.", file=sys.stderr)
@@ -187,15 +194,23 @@ def train(cfg: Optional[Config] = None, run_dir: Optional[str] = None, resume: b
     state = T.init(key, cfg) if initial_state is None else initial_state
     start_iter = 0
     if resume and ck.latest_step(run_dir) is not None:
-        state = ck.restore_state(run_dir, state)
+        # the newest checkpoint that restores; damaged newer ones are reported and set aside
+        state = ck.restore_state(run_dir, state, set_aside_broken=True)
         start_iter = int(state.counters.iteration)
         print(f"resumed {run_dir} at iteration {start_iter} "
               f"({int(state.counters.env_steps)} env steps)", file=sys.stderr)
     else:
         env_cfg = T.make_env(cfg).config   # the physics and task constants the run trains on
-        write_config(run_dir, cfg.to_dict(), {"command": " ".join(sys.argv),
-                                              "env": dataclasses.asdict(env_cfg)})
-    logger = RunLogger(run_dir, resume_iteration=start_iter)
+        try:
+            write_config(run_dir, cfg.to_dict(), {"command": " ".join(sys.argv),
+                                                  "env": dataclasses.asdict(env_cfg)})
+        except OSError as e:
+            raise _write_error(run_dir, e, "write config.json") from None
+    try:
+        logger = RunLogger(run_dir, resume_iteration=start_iter,
+                           wandb=None if wandb is None else {**wandb, "config": cfg.to_dict()})
+    except OSError as e:
+        raise _write_error(run_dir, e, "write metrics.csv") from None
     ckpt = ck.Checkpointer(run_dir, keep=cfg.keep_checkpoints)
 
     stop = {"flag": False}
@@ -275,14 +290,35 @@ def train(cfg: Optional[Config] = None, run_dir: Optional[str] = None, resume: b
         if stop["flag"]:
             print(f"saved a checkpoint at iteration {it}; continue with --resume {run_dir}",
                   file=sys.stderr)
+    except OSError as e:
+        if isinstance(e, ck.CheckpointError):
+            raise
+        last = ckpt.latest_step()
+        raise _write_error(run_dir, e, "write the run's logs (metrics.csv)", resume=True,
+                           note=f"the last checkpoint (iteration {last}) is intact"
+                           if last is not None else "") from None
     finally:
         if pbar is not None:
             pbar.close()
-        logger.close()
-        ckpt.close()
+        ending_error = sys.exc_info()[0]   # set while an exception ends the run
+        for close in (logger.close, ckpt.close):
+            try:
+                close()
+            except Exception:  # noqa: BLE001 - never hide the error that ended the run
+                if ending_error is None:
+                    raise
         if old_handler is not None:
             signal.signal(signal.SIGINT, old_handler)
     return state, run_dir
+
+
+def _write_error(run_dir: str, e: OSError, what: str, resume: bool = False, note: str = ""):
+    """A one-line RunDirError for a failed write under `run_dir` (a full disk, a read-only
+    directory), naming the fix."""
+    from dscpp_jax.run_logging import RunDirError, os_error_fix
+    fix = os_error_fix(e, run_dir, run_dir if resume else None)
+    return RunDirError(f"could not {what} under {run_dir} ({e.strerror or e})"
+                       + (f"; {note}" if note else "") + f". Fix: {fix}")
 
 
 def _schedule_done(cfg: Config, state) -> bool:
@@ -313,9 +349,12 @@ def load_run(run_dir: str, step: Optional[int] = None):
 
     from dscpp_jax import checkpoint as ck
     from dscpp_jax import trainer as T
-    from dscpp_jax.run_logging import read_config
-    cfg = Config.from_dict(read_config(run_dir)["config"])
-    state = ck.restore_state(run_dir, T.init(jax.random.PRNGKey(cfg.seed), cfg), step)
+    from dscpp_jax.run_logging import load_config
+    cfg = load_config(run_dir)
+    try:
+        state = ck.restore_state(run_dir, T.init(jax.random.PRNGKey(cfg.seed), cfg), step)
+    except ck.NoCheckpointError as e:
+        raise ck.NoCheckpointError(f"run {run_dir} has no checkpoint to load ({e})") from None
     return cfg, state
 
 
@@ -325,8 +364,12 @@ def parse_starts(text: Optional[str]):
     pts = []
     for part in text.replace(" ", "").split(";"):
         if part:
-            x, y = part.split(",")
-            pts.append([float(x), float(y)])
+            try:
+                x, y = part.split(",")
+                pts.append([float(x), float(y)])
+            except ValueError:
+                raise ValueError(f"--starts expects x,y pairs separated by ';' (e.g. "
+                                 f"--starts \"8,8;0,4\"), got {part!r} in {text!r}") from None
     return pts
 
 
@@ -335,9 +378,9 @@ def cmd_eval(args) -> int:
     import numpy as np
 
     from dscpp_jax.evaluate import evaluate
+    starts = parse_starts(args.starts)   # a typo here fails before anything loads
     cfg, state = load_run(args.run)
     key = jax.random.PRNGKey(args.seed)
-    starts = parse_starts(args.starts)
     summary, res = evaluate(state, key, args.episodes, starts)
     summary["iteration"] = int(state.counters.iteration)
     summary["env_steps"] = int(state.counters.env_steps)
@@ -348,15 +391,21 @@ def cmd_eval(args) -> int:
         summary["success_per_start"] = np.asarray(res.success).astype(int).tolist()
     name = "eval" + ("_starts" if starts else "")
     out_json = os.path.join(args.run, f"{name}.json")
-    with open(out_json, "w") as f:
-        json.dump(summary, f, indent=2)
+    try:
+        with open(out_json, "w") as f:
+            json.dump(summary, f, indent=2)
+    except OSError as e:
+        raise _write_error(args.run, e, f"write {name}.json") from None
     print(json.dumps({k: v for k, v in summary.items() if "option_success/" not in k
                       or v == v}, indent=2))
     if not args.no_plot:
         from dscpp_jax import plots
         path = os.path.join(args.run, f"{name}_trajectory.png")
-        plots.plot_trajectory(cfg, res, path, title=f"{cfg.env} {cfg.algo} (iteration "
-                              f"{summary['iteration']})")
+        try:
+            plots.plot_trajectory(cfg, res, path, title=f"{cfg.env} {cfg.algo} (iteration "
+                                  f"{summary['iteration']})")
+        except OSError as e:
+            raise _write_error(args.run, e, f"write {name}_trajectory.png") from None
         print(f"wrote {out_json} and {path}")
     return 0
 
@@ -364,16 +413,31 @@ def cmd_eval(args) -> int:
 def cmd_plot(args) -> int:
     from dscpp_jax import plots
     out = args.out or (os.path.join(args.runs[0], "plots") if len(args.runs) == 1 else "plots")
-    paths = plots.plot_runs(args.runs, out, with_state=not args.curves_only)
+    try:
+        paths = plots.plot_runs(args.runs, out, with_state=not args.curves_only)
+    except OSError as e:
+        if isinstance(e, ValueError):
+            raise
+        from dscpp_jax.run_logging import RunDirError, os_error_fix
+        raise RunDirError(f"could not write the plots to {out} ({e.strerror or e}). Fix: "
+                          f"{os_error_fix(e, out)}, or pick another folder with --out DIR"
+                          ) from None
     for p in paths:
         print(p)
     return 0
 
 
 def cmd_train(args) -> int:
+    wandb = None
+    if args.wandb:
+        from dscpp_jax.run_logging import wandb_missing_error
+        missing = wandb_missing_error()
+        if missing:
+            raise ValueError(missing)
+        wandb = {"project": args.wandb_project, "mode": args.wandb_mode}
     if args.resume:
-        from dscpp_jax.run_logging import read_config
-        cfg = Config.from_dict(read_config(args.resume)["config"])
+        from dscpp_jax.run_logging import load_config
+        cfg = load_config(args.resume)
         extra = _overrides(args.set)
         for name in ("total_env_steps", "total_episodes"):
             if getattr(args, name) is not None:
@@ -392,15 +456,19 @@ def cmd_train(args) -> int:
         run_dir = args.run_dir
     try:
         state, run_dir = train(cfg, run_dir, resume=bool(args.resume), time_budget=args.time_budget,
-                               progress=not args.no_progress)
+                               progress=not args.no_progress, wandb=wandb)
     except TrainingDiverged as e:
         print(f"error: {e}", file=sys.stderr)
         return 3
     if args.resume:
         from dscpp_jax.run_logging import read_config, write_config
         payload = read_config(run_dir)
-        write_config(run_dir, cfg.to_dict(), {k: v for k, v in payload.items()
-                                              if k not in ("config", "versions")})
+        try:
+            write_config(run_dir, cfg.to_dict(), {k: v for k, v in payload.items()
+                                                  if k not in ("config", "versions",
+                                                               "config_defaults")})
+        except OSError as e:
+            raise _write_error(run_dir, e, "update config.json") from None
     import jax
 
     from dscpp_jax.evaluate import evaluate
@@ -460,6 +528,12 @@ def build_parser() -> argparse.ArgumentParser:
     cache_help = ("directory of compiled programs reused across runs, resumes and evaluations "
                   f"(default: ${COMPILE_CACHE_ENV}, else {DEFAULT_COMPILE_CACHE}; 'off': none)")
     t.add_argument("--compile-cache", default=None, metavar="DIR", help=cache_help)
+    t.add_argument("--wandb", action="store_true",
+                   help="also log to Weights & Biases (pip install 'dscpp_jax[wandb]'); a resumed "
+                        "run continues the same wandb run")
+    t.add_argument("--wandb-project", default="dscpp_jax", metavar="NAME")
+    t.add_argument("--wandb-mode", default=None, choices=("online", "offline", "disabled"),
+                   help="default: $WANDB_MODE, else online")
     t.set_defaults(func=cmd_train)
 
     e = sub.add_parser("eval", help="evaluate a run's latest checkpoint")
@@ -491,6 +565,12 @@ def main(argv: Optional[list[str]] = None) -> int:
         return args.func(args)
     except ValueError as e:
         print(f"error: {e}", file=sys.stderr)
+        return 2
+    except OSError as e:   # a file the command reads or writes; the message names which
+        from dscpp_jax.run_logging import os_error_fix
+        where = getattr(e, "filename", None) or "the run directory"
+        print(f"error: {e.strerror or e} ({where}). Fix: {os_error_fix(e, str(where))}",
+              file=sys.stderr)
         return 2
 
 

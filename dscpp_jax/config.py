@@ -24,6 +24,12 @@ SUBGOALS = ("robust", "dp")
 PRESETS = ("paper", "fast")
 HIERARCHICAL_ALGOS = ("mb_dscpp", "mf_dscpp", "dual", "dsc")
 MODEL_BASED_ALGOS = ("mb_dscpp", "mb_flat", "mb_flat_value")
+# Config fields that were removed, with the value that meant "off" (their default then): a saved
+# run that set one of them otherwise cannot be reproduced by this version (`Config.from_saved`).
+# Runs written since also record every default beside their config ("config_defaults").
+RETIRED_FIELDS: dict[str, Any] = dict(
+    td3_upright_weight=0.0, td3_upright_min=0.5, td3_absorb_fallen=False,
+    mpc_upright_weight=0.0, mpc_upright_min=0.5)
 # Fields only the host driver reads (the TrainState carries `Config.device_view()`).
 HOST_ONLY_DEFAULTS = dict(seed=0, total_env_steps=1, total_episodes=0, eval_every=0,
                           log_every=1, checkpoint_every=0, keep_checkpoints=1, preset="paper")
@@ -186,6 +192,34 @@ class Config:
         d = {**LEGACY_DEFAULTS, **d}
         return cls(**{k: v for k, v in d.items() if k in names})
 
+    @classmethod
+    def from_saved(cls, d: Any, defaults: Any = None, source: str = "this run") -> "Config":
+        """The Config of a saved run (config.json's "config"), checked against this version.
+
+        Fields the run lacks (added since) take their defaults, which is what it used. Fields this
+        version no longer has are ignored when they hold the value that meant "off" (the default
+        recorded beside the run, `defaults`, else `RETIRED_FIELDS`); any other value raises a
+        ValueError naming them, since the run's results depend on behaviour that is gone."""
+        if not isinstance(d, dict):
+            raise ValueError(f"{source}: config.json's \"config\" is not a mapping of Config fields")
+        names = {f.name for f in dataclasses.fields(cls)}
+        off = {**RETIRED_FIELDS, **(defaults if isinstance(defaults, dict) else {})}
+        _missing = object()
+        gone = {k: v for k, v in d.items() if k not in names and off.get(k, _missing) != v}
+        if gone:
+            said = ", ".join(f"{k}={v!r}" + (f" (off: {off[k]!r})" if k in off else "")
+                             for k, v in sorted(gone.items()))
+            raise ValueError(
+                f"{source} was made by another (older) version of dscpp_jax: it sets {said}, "
+                f"which this version no longer has, so it cannot continue or evaluate that run as "
+                f"it was trained. Use the version that made it (its commit is config.json's "
+                f"versions.dscpp_jax_git) or train a new run")
+        try:
+            return cls.from_dict(d)
+        except TypeError as e:
+            raise ValueError(f"{source}: config.json's \"config\" does not fit this version's "
+                             f"Config ({e})") from None
+
     def validate(self) -> "Config":
         """Raise a ValueError naming the fix for any impossible setting; return self."""
         def need(cond: bool, msg: str) -> None:
@@ -332,9 +366,21 @@ def parse_value(field_name: str, text: str) -> Any:
             return True
         if text.lower() in ("0", "false", "no", "off"):
             return False
-        raise ValueError(f"{field_name} expects true/false, got {text!r}")
-    if t == "int":
-        return int(float(text)) if "e" in text.lower() else int(text)
-    if t == "float":
-        return float(text)
+        raise ValueError(f"--set {field_name}={text!r}: {field_name} is true or false, e.g. "
+                         f"--set {field_name}=true")
+    try:
+        if t == "int":
+            v = float(text) if "e" in text.lower() else int(text)
+            if v != int(v):
+                raise ValueError(text)
+            return int(v)
+        if t == "float":
+            return float(text)
+    except ValueError:
+        example = getattr(Config(), field_name)
+        raise ValueError(f"--set {field_name}={text!r}: {field_name} is {_TYPE_NAMES[t]}, e.g. "
+                         f"--set {field_name}={example}") from None
     return text
+
+
+_TYPE_NAMES = {"int": "an integer", "float": "a number"}

@@ -14,6 +14,7 @@ from typing import Any, Dict, NamedTuple, Optional
 import flax.struct
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from dscpp_jax import trainer as T
 from dscpp_jax.config import Config
@@ -142,10 +143,19 @@ def evaluate(state: T.TrainState, key: Optional[jax.Array] = None, num_episodes:
     The default key depends only on the iteration, so evaluation never consumes the training
     PRNG stream.
     """
+    if not isinstance(state, T.TrainState):
+        raise TypeError(f"evaluate(state, ...) needs the TrainState made by dscpp_jax.init or "
+                        f"train_step, got {type(state).__name__}")
     cfg = state.config
     if starts is not None:
+        shape = np.shape(starts)
+        if len(shape) not in (1, 2) or shape[-1] != 2 or int(np.prod(shape)) == 0:
+            raise ValueError(f"starts must be (x, y) positions, shape (N, 2) (e.g. [[8.0, 8.0], "
+                             f"[0.0, 4.0]]), got shape {tuple(shape)}")
         starts = jnp.asarray(starts, jnp.float32).reshape(-1, 2)
         num_episodes = int(starts.shape[0])
+    if num_episodes is not None and int(num_episodes) < 1:
+        raise ValueError(f"num_episodes must be >= 1, got {num_episodes}")
     n = int(num_episodes or cfg.eval_episodes)
     if key is None:
         key = jax.random.fold_in(jax.random.PRNGKey(1_000_003),

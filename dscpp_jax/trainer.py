@@ -181,6 +181,13 @@ def init(key: jax.Array, config: Config) -> TrainState:
 
     The state carries `config.device_view()`: host-only fields (seed, schedule length, logging
     cadence) are reset there so that changing them never recompiles `train_step`."""
+    if not isinstance(config, Config):
+        raise TypeError(f"init(key, config) needs a dscpp_jax.Config as its second argument (e.g. "
+                        f"dscpp_jax.preset('fast', env='point_u_maze')), got "
+                        f"{type(config).__name__}")
+    if not hasattr(key, "dtype"):
+        raise TypeError(f"init(key, config) needs a PRNG key as its first argument (e.g. "
+                        f"jax.random.PRNGKey(0)), got {type(key).__name__}")
     config = resolve_physics(config.validate()).device_view()
     make_env(config)  # unknown env names fail here, not inside a trace
     return _init_jit(key, config)
@@ -470,6 +477,7 @@ def train_step_impl(state: TrainState, seed_axis: Optional[str] = None
     runs (a seed group), name that axis. Work that only some runs need (MPC during warm-up, resets,
     the dynamics pre-training burst, classifier refits, delayed actor steps) then runs when any run
     needs it, instead of on every call as a vmapped ``lax.cond`` would. Results are the same."""
+    _check_state(state)
     key, k_roll, k_learn = jax.random.split(state.key, 3)
     state = state.replace(key=key)
     state, m_roll = _rollout(state, k_roll, seed_axis)
@@ -482,7 +490,25 @@ def train_step_impl(state: TrainState, seed_axis: Optional[str] = None
     return state, metrics
 
 
-train_step = jax.jit(train_step_impl, static_argnames=("seed_axis",))
+def _check_state(state) -> None:
+    if not isinstance(state, TrainState):
+        raise TypeError(f"train_step(state) needs the TrainState made by dscpp_jax.init (or "
+                        f"returned by train_step), got {type(state).__name__}")
+
+
+_train_step_jit = jax.jit(train_step_impl)
+
+
+def train_step(state: TrainState) -> Tuple[TrainState, Dict[str, jax.Array]]:
+    """One iteration, jitted (compiles once per Config); a TypeError for anything but a
+    TrainState, before JAX tries to trace it."""
+    _check_state(state)
+    return _train_step_jit(state)
+
+
+for _name in ("lower", "trace", "eval_shape", "_cache_size", "clear_cache"):
+    if hasattr(_train_step_jit, _name):
+        setattr(train_step, _name, getattr(_train_step_jit, _name))
 """Jitted `train_step(state) -> (state, metrics)`; compiles once per Config."""
 
 
