@@ -34,6 +34,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 import warnings
 from typing import Dict, Iterable, List, Optional, Sequence, Tuple
 
@@ -301,7 +302,7 @@ def num_frames(steps: Sequence[int], every: int = 1, hold: int = 0) -> int:
 # ------------------------------------------------------------------------------------------------
 # Scene
 # ------------------------------------------------------------------------------------------------
-def point_mjcf(layout, radius: float, wall_height: float = 2.0) -> str:
+def point_mjcf(layout, radius: float, wall_height: float = 1.0) -> str:
     """A draw-only MJCF of a point-mass maze: floor, the layout's wall boxes, a mocap ball."""
     hz = wall_height / 2.0
     walls = "\n".join(
@@ -352,7 +353,11 @@ class MazeScene:
         self.data = mujoco.MjData(self.model)
         # goal ball radius (subgoal ball, start disc: 0.6x): visible in a top view of a big maze
         self.marker_radius = max(0.3, 0.12 * self.layout.cell_size)
-        self.wall_height = 2.0 if not self.is_mjx else float(env.config.wall_height)
+        self.wall_height = 1.0 if not self.is_mjx else float(env.config.wall_height)
+        # drawn walls (the ant's invisible proxies excluded): see-through in the following view
+        self.wall_geoms = {g for g in range(self.model.ngeom)
+                           if (mujoco.mj_id2name(self.model, mujoco.mjtObj.mjOBJ_GEOM, g) or "")
+                           .startswith("wall_") and self.model.geom_rgba[g, 3] > 0}
 
     def set_state(self, ep: Episode, t: int) -> None:
         """Pose the model as at frame t of `ep` (kinematics only)."""
@@ -432,9 +437,10 @@ def _add_line(scene, a, b, rgba, width: float = 3.0) -> None:
     scene.ngeom += 1
 
 
-def draw_markers(scene, ms: MazeScene, ep: Episode, t: int, colors: Dict[int, tuple]) -> None:
-    """Add the goal, start, path, option halo and subgoal to a scene after `update_scene`, and
-    colour the agent by its option."""
+def draw_markers(scene, ms: MazeScene, ep: Episode, t: int, colors: Dict[int, tuple],
+                 wall_alpha: float = 1.0) -> None:
+    """Add the goal, start, path, option halo and subgoal to a scene after `update_scene`, colour
+    the agent by its option, and give the walls `wall_alpha` (below 1: see-through)."""
     import mujoco
     disc, ball = mujoco.mjtGeom.mjGEOM_CYLINDER, mujoco.mjtGeom.mjGEOM_SPHERE
     tol = ms.goal_tolerance
@@ -458,8 +464,11 @@ def draw_markers(scene, ms: MazeScene, ep: Episode, t: int, colors: Dict[int, tu
     _add_line(scene, (x, y, 0.3), (sgx, sgy, 0.3), rgba[:3] + (0.8,), width=2.0)
     for i in range(scene.ngeom):   # colour the agent (torso / point) by option
         g = scene.geoms[i]
-        if g.objtype == mujoco.mjtObj.mjOBJ_GEOM and g.objid == ms.agent_geom:
-            g.rgba[:] = rgba
+        if g.objtype == mujoco.mjtObj.mjOBJ_GEOM:
+            if g.objid == ms.agent_geom:
+                g.rgba[:] = rgba
+            elif wall_alpha < 1.0 and g.objid in ms.wall_geoms:
+                g.rgba[3] = wall_alpha
 
 
 def option_colors(max_options: int) -> Dict[int, tuple]:
@@ -499,7 +508,9 @@ def render_episodes(env, episodes: Sequence[Episode], out_dir: str, max_options:
                         ms.agent_xyz(), ms.follow_distance, ms.follow_height)
                     renderer.update_scene(ms.data, camera=cam)
                     renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = bool(shadows)
-                    draw_markers(renderer.scene, ms, ep, t, colors)
+                    # walls between the following camera and the agent must not hide it
+                    draw_markers(renderer.scene, ms, ep, t, colors,
+                                 wall_alpha=1.0 if c == "topdown" else 0.4)
                     frame = renderer.render()
                     w.write(frame)
                     for _ in range(hold if t == ep.steps else 0):
@@ -542,8 +553,10 @@ def render_run(cfg, state, out_dir: str, episodes: int = 1, starts=None, seed: i
     env = T.make_env(cfg)
     res = rollout(state, jax.random.PRNGKey(seed), episodes, starts, max_steps)
     eps = episodes_from_result(res)
+    t0 = time.time()
     paths = render_episodes(env, eps, out_dir, int(cfg.max_options), cameras, width, height, fps,
                             every, hold_s, crf)
+    render_s = time.time() - t0
     colors = option_colors(int(cfg.max_options))
     hold = int(round(hold_s * fps))
     used = sorted({int(o) for ep in eps for o in ep.option})
@@ -561,7 +574,7 @@ def render_run(cfg, state, out_dir: str, episodes: int = 1, starts=None, seed: i
         "fps": fps, "every": every, "width": width, "height": height, "frames": frame0,
         "files": {c: os.path.basename(p) for c, p in paths.items()}, "episodes": ep_info,
         "option_colors": {str(k): _hex(colors[k]) for k in used},
-        "goal_color": _hex(GOAL_RGBA),
+        "goal_color": _hex(GOAL_RGBA), "render_seconds": round(render_s, 2),
     }
     spath = os.path.join(out_dir, "eval_video.json")
     with open(spath, "w") as f:
