@@ -4,6 +4,7 @@
     python -m dscpp_jax.cli train --resume runs/point_u_maze-mb_dscpp-s0-...
     python -m dscpp_jax.cli eval --run runs/<run> [--episodes 16] [--starts "9,9;-9,-9"]
     python -m dscpp_jax.cli plot runs/<run> [runs/<other> ...] [--out DIR]
+    python -m dscpp_jax.cli video --run runs/<run> [--episodes 1] [--camera both] [--every 1]
 
 Any Config field can be overridden with `--set name=value` (repeatable). Ctrl-C saves a checkpoint
 and exits; `--resume RUN_DIR` continues exactly from the last checkpoint.
@@ -410,6 +411,58 @@ def cmd_eval(args) -> int:
     return 0
 
 
+def _video_options(args) -> dict:
+    cams = ("topdown", "follow") if args.camera == "both" else (args.camera,)
+    return dict(cameras=cams, width=args.width, height=args.height, fps=args.fps,
+                every=args.every, max_steps=args.max_steps, crf=args.crf)
+
+
+def write_videos(cfg, state, run_dir: str, out: Optional[str] = None, episodes: int = 1,
+                 starts=None, seed: int = 0, **options) -> dict:
+    """Render evaluation episodes of `state` to MP4 under `out` (default RUN_DIR/videos)."""
+    from dscpp_jax import video
+    out = out or os.path.join(run_dir, "videos")
+    paths = video.render_run(cfg, state, out, episodes=episodes, starts=starts, seed=seed,
+                             **options)
+    for k, p in paths.items():
+        print(f"{k}: {p}")
+    return paths
+
+
+def cmd_video(args) -> int:
+    from dscpp_jax import video
+    try:
+        video.select_gl_backend()   # before JAX starts threads, and before anything compiles
+        video.check_encoder()
+        opts = _video_options(args)
+        video.check_options(**opts)
+    except video.VideoError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    cfg, state = load_run(args.run, args.step)
+    write_videos(cfg, state, args.run, args.out, args.episodes, parse_starts(args.starts),
+                 args.seed, **opts)
+    return 0
+
+
+def _add_video_args(p: argparse.ArgumentParser, prefix: str = "") -> None:
+    """Video options (`prefix` "video-" for `train`, whose --seed/--episodes mean other things)."""
+    p.add_argument(f"--{prefix}camera", dest="camera", default="both",
+                   choices=("topdown", "follow", "both"),
+                   help="top-down view of the whole maze, a camera following the agent, or both "
+                        "(one MP4 each)")
+    p.add_argument(f"--{prefix}width", dest="width", type=int, default=480)
+    p.add_argument(f"--{prefix}height", dest="height", type=int, default=480)
+    p.add_argument(f"--{prefix}fps", dest="fps", type=float, default=30.0,
+                   help="frames per second (an env step is 0.1 s: 10 is real time)")
+    p.add_argument(f"--{prefix}every", dest="every", type=int, default=1, metavar="K",
+                   help="draw every K-th step (and the last): K times shorter, smaller files")
+    p.add_argument(f"--{prefix}max-steps", dest="max_steps", type=int, default=None,
+                   help="cut episodes after this many steps (default: the episode length)")
+    p.add_argument(f"--{prefix}crf", dest="crf", type=int, default=23,
+                   help="H.264 quality: 18 near lossless .. 28 smaller files")
+
+
 def cmd_plot(args) -> int:
     from dscpp_jax import plots
     out = args.out or (os.path.join(args.runs[0], "plots") if len(args.runs) == 1 else "plots")
@@ -435,6 +488,13 @@ def cmd_train(args) -> int:
         if missing:
             raise ValueError(missing)
         wandb = {"project": args.wandb_project, "mode": args.wandb_mode}
+    if args.video:   # bad video options fail now, not after training
+        from dscpp_jax import video
+        try:
+            video.check_options(**_video_options(args))
+        except video.VideoError as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 2
     if args.resume:
         from dscpp_jax.run_logging import load_config
         cfg = load_config(args.resume)
@@ -482,6 +542,14 @@ def cmd_train(args) -> int:
                               title=f"{cfg.env} {cfg.algo}, iteration {it}, "
                                     f"{int(state.counters.env_steps)} env steps")
         plots.plot_classifiers(cfg, state, os.path.join(out, "classifiers.png"))
+    if args.video:
+        from dscpp_jax import video
+        try:
+            write_videos(cfg, state, run_dir, episodes=args.video_episodes,
+                         **_video_options(args))
+        except video.VideoError as e:   # the run is saved; only its video is missing
+            print(f"error: no video: {e}; render it later with: make video RUN={run_dir}",
+                  file=sys.stderr)
     print(f"run: {run_dir}\nenv steps {int(state.counters.env_steps)}, episodes "
           f"{int(state.counters.episodes)}, eval success {ev['eval/success_rate']:.2f}, "
           f"options {int(ev['eval/num_options'])}")
@@ -534,6 +602,10 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--wandb-project", default="dscpp_jax", metavar="NAME")
     t.add_argument("--wandb-mode", default=None, choices=("online", "offline", "disabled"),
                    help="default: $WANDB_MODE, else online")
+    t.add_argument("--video", action="store_true",
+                   help="at the end, render evaluation episodes to MP4 in RUN_DIR/videos")
+    t.add_argument("--video-episodes", dest="video_episodes", type=int, default=1)
+    _add_video_args(t, prefix="video-")
     t.set_defaults(func=cmd_train)
 
     e = sub.add_parser("eval", help="evaluate a run's latest checkpoint")
@@ -546,6 +618,19 @@ def build_parser() -> argparse.ArgumentParser:
                    help=det_help)
     e.add_argument("--compile-cache", default=None, metavar="DIR", help=cache_help)
     e.set_defaults(func=cmd_eval)
+
+    v = sub.add_parser("video", help="render evaluation episodes of a run's checkpoint to MP4")
+    v.add_argument("--run", required=True)
+    v.add_argument("--episodes", type=int, default=1)
+    v.add_argument("--starts", default=None, help='start positions "x,y;x,y" (default: task start)')
+    v.add_argument("--seed", type=int, default=0)
+    v.add_argument("--step", type=int, default=None, help="checkpoint step (default: the latest)")
+    v.add_argument("--out", default=None, help="output directory (default: RUN/videos)")
+    _add_video_args(v)
+    v.add_argument("--deterministic", action=argparse.BooleanOptionalAction, default=True,
+                   help=det_help)
+    v.add_argument("--compile-cache", default=None, metavar="DIR", help=cache_help)
+    v.set_defaults(func=cmd_video)
 
     pl = sub.add_parser("plot", help="learning curves (one or many runs) + trajectory/classifier plots")
     pl.add_argument("runs", nargs="+")

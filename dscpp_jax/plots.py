@@ -28,6 +28,15 @@ def _draw_maze(ax, layout):
     ax.plot(*layout.goal_xy, "*", color="gold", mec="k", ms=16, zorder=5, label="goal")
 
 
+def option_color(option: int, max_options: int) -> tuple:
+    """RGBA (floats) of an option index in the trajectory plots (and the videos); -1 (no option
+    running) is grey."""
+    if option < 0:
+        return (0.5, 0.5, 0.5, 1.0)
+    cmap = _plt().get_cmap("tab10" if max_options <= 10 else "tab20")
+    return tuple(float(c) for c in cmap(int(option) % cmap.N))
+
+
 def _layout(cfg):
     from dscpp_jax.trainer import make_env
     return make_env(cfg).layout
