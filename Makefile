@@ -11,12 +11,12 @@ ARGS  ?=
 RUN   ?=
 SEEDS ?=
 
-.PHONY: install test train eval plot bench-env bench-learners bench-options bench-seeds clean
+.PHONY: install test train eval plot video bench-env bench-learners bench-options bench-seeds clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -m pip install -q -e '.[dev,tensorboard]'
+	$(BIN)/python -m pip install -q -e '.[dev,tensorboard,wandb,video,warp]'
 	touch $(STAMP)
 
 install: $(STAMP)
@@ -39,6 +39,12 @@ eval: $(STAMP)
 plot: $(STAMP)
 	@test -n "$(RUN)" || (echo "usage: make plot RUN='runs/<a> runs/<b>' [ARGS=...]"; exit 2)
 	$(BIN)/python -m dscpp_jax.cli plot $(RUN) $(ARGS)
+
+# MP4s of evaluation episodes in RUN/videos (top-down and following camera); MuJoCo renders
+# through EGL or OSMesa, whichever loads (MUJOCO_GL=egl on a GPU host).
+video: $(STAMP)
+	@test -n "$(RUN)" || (echo "usage: make video RUN=runs/<run-dir> [ARGS='--episodes 2 --every 2']"; exit 2)
+	$(BIN)/python -m dscpp_jax.cli video --run $(RUN) $(ARGS)
 
 bench-env: $(STAMP)
 	$(BIN)/python experiments/bench_env.py $(ARGS)

@@ -3,10 +3,18 @@ states, normalisers, replay buffers, option table and classifiers, counters, PRN
 
 Typed PRNG keys are stored as their raw key data (`jax.random.key_data`) and re-wrapped on restore,
 so a checkpoint written on one JAX version restores on another.
+
+Safety: a new checkpoint is read back before any older one is deleted (orbax itself would delete
+the oldest as soon as the new one is written), so a save that fails, or writes damaged files,
+never leaves a run with only a broken checkpoint. Restoring the latest checkpoint falls back to
+the newest one that restores, with a warning on stderr naming both steps.
 """
 from __future__ import annotations
 
 import os
+import shutil
+import sys
+import time
 from typing import Any
 
 import jax
@@ -56,26 +64,135 @@ def _abstract(tree: Any) -> Any:
     return jax.eval_shape(to_storable, tree)
 
 
-class Checkpointer:
-    """Periodic whole-state checkpoints under RUN_DIR/checkpoints/<step>/ (step = iteration)."""
+class CheckpointError(ValueError):
+    """A checkpoint cannot be written or restored; the message says what to do."""
 
-    def __init__(self, run_dir: str, keep: int = 2):
+
+class NoCheckpointError(CheckpointError, FileNotFoundError):
+    """The run directory has no checkpoint (yet)."""
+
+
+UNRESTORABLE_DIR = "checkpoints_unrestorable"
+
+
+def _reason(e: BaseException) -> str:
+    text = " ".join(str(e).split())
+    return f"{type(e).__name__}: {text[:300]}" + ("..." if len(text) > 300 else "")
+
+
+class Checkpointer:
+    """Periodic whole-state checkpoints under RUN_DIR/checkpoints/<step>/ (step = iteration).
+
+    Keeps the newest `keep` checkpoints; older ones are deleted only after a new checkpoint has
+    been written and read back (`verify`)."""
+
+    def __init__(self, run_dir: str, keep: int = 2, verify: bool = True):
+        self.run_dir = run_dir
         self.directory = os.path.abspath(os.path.join(run_dir, CKPT_DIR))
-        opts = ocp.CheckpointManagerOptions(max_to_keep=max(1, keep), create=True)
+        self.keep = max(1, int(keep))
+        self.verify = verify
+        # max_to_keep=None: orbax deletes nothing; `_prune` does, once the new step reads back
+        opts = ocp.CheckpointManagerOptions(max_to_keep=None, create=True)
         self.manager = ocp.CheckpointManager(self.directory, options=opts)
 
+    def all_steps(self) -> list[int]:
+        return sorted(int(s) for s in self.manager.all_steps())
+
     def save(self, step: int, state: Any, force: bool = True) -> None:
-        self.manager.save(int(step), args=ocp.args.StandardSave(to_storable(state)), force=force)
-        self.manager.wait_until_finished()
+        """Write, read back, then prune. A failure raises a CheckpointError (older checkpoints
+        stay as they were); a step that is already saved is left alone."""
+        step = int(step)
+        if step in self.all_steps():
+            return
+        try:
+            self.manager.save(step, args=ocp.args.StandardSave(to_storable(state)), force=force)
+            self.manager.wait_until_finished()
+        except Exception as e:  # noqa: BLE001 - orbax / tensorstore wrap OSErrors in many types
+            from dscpp_jax.run_logging import os_error_fix
+            raise CheckpointError(
+                f"could not save the checkpoint of iteration {step} under {self.directory} "
+                f"({_reason(e)}); {self._kept()}. Fix: "
+                f"{os_error_fix(e, self.directory, self.run_dir)}") from e
+        if self.verify:
+            try:
+                self._read_back(step, state)
+            except Exception as e:  # noqa: BLE001
+                moved = self._set_aside(step)
+                raise CheckpointError(
+                    f"the checkpoint of iteration {step} did not read back ({_reason(e)}); it was "
+                    f"moved to {moved} and {self._kept()}. Check the disk under {self.directory} "
+                    f"and continue with `train --resume {self.run_dir}`") from e
+        self._prune(step)
+
+    def _kept(self) -> str:
+        steps = self.all_steps()
+        return (f"the earlier checkpoints (iterations {steps}) were kept" if steps else
+                "no earlier checkpoint exists")
+
+    def _read_back(self, step: int, like: Any) -> None:
+        """Restore `step` to host memory (numpy), which reads and decodes every stored array."""
+        abstract = _abstract(like)
+        target = jax.tree_util.tree_map(lambda a: np.empty(a.shape, a.dtype), abstract)
+        self.manager.restore(step, args=ocp.args.StandardRestore(target))
+
+    def _prune(self, newest: int) -> None:
+        older = [s for s in self.all_steps() if s < newest]
+        for s in older[:max(0, len(older) - (self.keep - 1))]:
+            self.manager.delete(s)
+
+    def _set_aside(self, step: int) -> str:
+        """Move a damaged checkpoint out of the way (never delete it): RUN/checkpoints_unrestorable/."""
+        src = os.path.join(self.directory, str(step))
+        dst_dir = os.path.join(os.path.dirname(self.directory), UNRESTORABLE_DIR)
+        dst = os.path.join(dst_dir, f"{step}-{time.strftime('%Y%m%d-%H%M%S')}")
+        try:
+            os.makedirs(dst_dir, exist_ok=True)
+            shutil.move(src, dst)
+            self.manager.reload()
+        except OSError:
+            return src + " (could not move it)"
+        return dst
 
     def latest_step(self) -> int | None:
         return self.manager.latest_step()
 
-    def restore(self, like: Any, step: int | None = None) -> Any:
-        """Restore into the structure of `like` (a concrete state or `jax.eval_shape` output)."""
-        step = self.latest_step() if step is None else step
-        if step is None:
-            raise FileNotFoundError(f"no checkpoint found under {self.directory}")
+    def restore(self, like: Any, step: int | None = None, set_aside_broken: bool = False) -> Any:
+        """Restore into the structure of `like` (a concrete state or `jax.eval_shape` output).
+
+        With `step=None`, the newest checkpoint that restores: a newer one that does not is
+        reported on stderr (and with `set_aside_broken`, moved to RUN/checkpoints_unrestorable/,
+        so that training can write that iteration again)."""
+        steps = self.all_steps()
+        if step is not None:
+            if int(step) not in steps:
+                raise NoCheckpointError(f"no checkpoint of iteration {step} under {self.directory}"
+                                        f"; saved iterations: {steps}")
+            return self._restore(like, int(step))
+        if not steps:
+            raise NoCheckpointError(f"no checkpoint found under {self.directory}: the run saved "
+                                    f"none yet; train (or resume) it first")
+        failures = []
+        for s in reversed(steps):
+            try:
+                out = self._restore(like, s)
+            except Exception as e:  # noqa: BLE001 - damaged files surface as many error types
+                failures.append((s, e))
+                continue
+            if failures:
+                bad = ", ".join(f"{b} ({_reason(e)})" for b, e in failures)
+                note = ""
+                if set_aside_broken:
+                    note = "; moved aside: " + ", ".join(self._set_aside(b) for b, _ in failures)
+                print(f"WARNING: the newest checkpoint(s) under {self.directory} cannot be "
+                      f"restored: iteration {bad}. Using iteration {s} instead{note}.",
+                      file=sys.stderr, flush=True)
+            return out
+        bad = "; ".join(f"iteration {b}: {_reason(e)}" for b, e in failures)
+        raise CheckpointError(
+            f"no checkpoint under {self.directory} restores ({bad}). The files are damaged, or the "
+            f"run was saved by a version whose state differs from this one's; start a new run")
+
+    def _restore(self, like: Any, step: int) -> Any:
         stored = self.manager.restore(step, args=ocp.args.StandardRestore(_abstract(like)))
         # uncommitted default-device arrays, like the outputs of `init` and `train_step`, so the
         # next call of a jitted function hits its compilation cache
@@ -83,8 +200,10 @@ class Checkpointer:
         return from_storable(stored, like)
 
     def close(self) -> None:
-        self.manager.wait_until_finished()
-        self.manager.close()
+        try:
+            self.manager.wait_until_finished()
+        finally:
+            self.manager.close()
 
 
 def save_state(run_dir: str, step: int, state: Any, keep: int = 2) -> None:
@@ -95,10 +214,14 @@ def save_state(run_dir: str, step: int, state: Any, keep: int = 2) -> None:
         ck.close()
 
 
-def restore_state(run_dir: str, like: Any, step: int | None = None) -> Any:
+def restore_state(run_dir: str, like: Any, step: int | None = None,
+                  set_aside_broken: bool = False) -> Any:
+    if not os.path.isdir(os.path.join(run_dir, CKPT_DIR)):
+        raise NoCheckpointError(f"no checkpoint found under {os.path.join(run_dir, CKPT_DIR)}: "
+                                f"the run saved none yet; train (or resume) it first")
     ck = Checkpointer(run_dir)
     try:
-        return ck.restore(like, step)
+        return ck.restore(like, step, set_aside_broken=set_aside_broken)
     finally:
         ck.close()
 
@@ -110,5 +233,17 @@ def latest_step(run_dir: str) -> int | None:
     ck = Checkpointer(run_dir)
     try:
         return ck.latest_step()
+    finally:
+        ck.close()
+
+
+def all_steps(run_dir: str) -> list[int]:
+    """The iterations saved under RUN_DIR/checkpoints (oldest first)."""
+    d = os.path.join(run_dir, CKPT_DIR)
+    if not os.path.isdir(d):
+        return []
+    ck = Checkpointer(run_dir)
+    try:
+        return ck.all_steps()
     finally:
         ck.close()

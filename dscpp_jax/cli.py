@@ -4,6 +4,7 @@
     python -m dscpp_jax.cli train --resume runs/point_u_maze-mb_dscpp-s0-...
     python -m dscpp_jax.cli eval --run runs/<run> [--episodes 16] [--starts "9,9;-9,-9"]
     python -m dscpp_jax.cli plot runs/<run> [runs/<other> ...] [--out DIR]
+    python -m dscpp_jax.cli video --run runs/<run> [--episodes 1] [--camera both] [--every 1]
 
 Any Config field can be overridden with `--set name=value` (repeatable). Ctrl-C saves a checkpoint
 and exits; `--resume RUN_DIR` continues exactly from the last checkpoint.
@@ -48,8 +49,12 @@ def config_from_args(args) -> Config:
         if v is not None:
             kw[name] = v
     kw["seed"] = args.seed
+    if getattr(args, "physics", None):
+        kw["physics"] = args.physics
     cfg = preset(args.preset, args.env, args.algo, **kw)
     cfg.validate()
+    from dscpp_jax.trainer import resolve_physics   # record the back end that will run
+    cfg = resolve_physics(cfg)
     import envs  # unknown env names fail here, before anything is compiled
     envs.make(cfg.env)
     return cfg
@@ -149,29 +154,39 @@ def _check_finite(metrics: dict) -> Optional[str]:
 
 def train(cfg: Optional[Config] = None, run_dir: Optional[str] = None, resume: bool = False,
           time_budget: Optional[float] = None, progress: bool = True,
-          max_iterations: Optional[int] = None, initial_state=None):
+          max_iterations: Optional[int] = None, initial_state=None,
+          wandb: Optional[dict] = None):
     """Train (or resume) a run; returns (state, run_dir). Saves checkpoints and metrics.csv.
 
-    `initial_state` (optional) replaces `init(PRNGKey(seed), cfg)` for a fresh run."""
+    `initial_state` (optional) replaces `init(PRNGKey(seed), cfg)` for a fresh run. `wandb`
+    (optional): `{"project": ..., "mode": ...}` also logs to Weights & Biases.
+    A directory that cannot be read or written raises a ValueError (`RunDirError`,
+    `CheckpointError`) that names the fix; what was saved before stays as it was."""
     import jax
     import numpy as np
 
     from dscpp_jax import checkpoint as ck
     from dscpp_jax import trainer as T
     from dscpp_jax.evaluate import evaluate
-    from dscpp_jax.run_logging import RunLogger, read_config, write_config
+    from dscpp_jax.run_logging import RunLogger, load_config, write_config
 
     if resume:
-        if run_dir is None or not os.path.isdir(run_dir):
-            raise ValueError(f"--resume needs an existing run directory, got {run_dir!r}")
-        saved = Config.from_dict(read_config(run_dir)["config"])
+        if run_dir is None:
+            raise ValueError("--resume needs the run directory to continue")
+        saved = load_config(run_dir)
         cfg = saved if cfg is None else cfg
     if cfg is None:
         raise ValueError("train() needs a Config (or resume=True with a run_dir)")
-    cfg.validate()
+    cfg = T.resolve_physics(cfg.validate())
     if run_dir is None:
         run_dir = default_run_dir(cfg)
-    os.makedirs(run_dir, exist_ok=True)
+    if _is_ant(cfg):
+        print(f"{cfg.env}: {'MuJoCo Warp' if cfg.physics == 'warp' else 'MJX (JAX)'} physics on "
+              f"{jax.default_backend().upper()}", file=sys.stderr)
+    try:
+        os.makedirs(run_dir, exist_ok=True)
+    except OSError as e:
+        raise _write_error(run_dir, e, "create the run directory") from None
     if _is_ant(cfg) and jax.default_backend() == "cpu":
         print(f"WARNING: {cfg.env} is an MJX ant environment meant for a GPU; on a CPU it is very "
               f"slow. Use a point-mass twin (e.g. point_{cfg.env}) for CPU runs.", file=sys.stderr)
@@ -180,15 +195,23 @@ def train(cfg: Optional[Config] = None, run_dir: Optional[str] = None, resume: b
     state = T.init(key, cfg) if initial_state is None else initial_state
     start_iter = 0
     if resume and ck.latest_step(run_dir) is not None:
-        state = ck.restore_state(run_dir, state)
+        # the newest checkpoint that restores; damaged newer ones are reported and set aside
+        state = ck.restore_state(run_dir, state, set_aside_broken=True)
         start_iter = int(state.counters.iteration)
         print(f"resumed {run_dir} at iteration {start_iter} "
               f"({int(state.counters.env_steps)} env steps)", file=sys.stderr)
     else:
         env_cfg = T.make_env(cfg).config   # the physics and task constants the run trains on
-        write_config(run_dir, cfg.to_dict(), {"command": " ".join(sys.argv),
-                                              "env": dataclasses.asdict(env_cfg)})
-    logger = RunLogger(run_dir, resume_iteration=start_iter)
+        try:
+            write_config(run_dir, cfg.to_dict(), {"command": " ".join(sys.argv),
+                                                  "env": dataclasses.asdict(env_cfg)})
+        except OSError as e:
+            raise _write_error(run_dir, e, "write config.json") from None
+    try:
+        logger = RunLogger(run_dir, resume_iteration=start_iter,
+                           wandb=None if wandb is None else {**wandb, "config": cfg.to_dict()})
+    except OSError as e:
+        raise _write_error(run_dir, e, "write metrics.csv") from None
     ckpt = ck.Checkpointer(run_dir, keep=cfg.keep_checkpoints)
 
     stop = {"flag": False}
@@ -268,14 +291,35 @@ def train(cfg: Optional[Config] = None, run_dir: Optional[str] = None, resume: b
         if stop["flag"]:
             print(f"saved a checkpoint at iteration {it}; continue with --resume {run_dir}",
                   file=sys.stderr)
+    except OSError as e:
+        if isinstance(e, ck.CheckpointError):
+            raise
+        last = ckpt.latest_step()
+        raise _write_error(run_dir, e, "write the run's logs (metrics.csv)", resume=True,
+                           note=f"the last checkpoint (iteration {last}) is intact"
+                           if last is not None else "") from None
     finally:
         if pbar is not None:
             pbar.close()
-        logger.close()
-        ckpt.close()
+        ending_error = sys.exc_info()[0]   # set while an exception ends the run
+        for close in (logger.close, ckpt.close):
+            try:
+                close()
+            except Exception:  # noqa: BLE001 - never hide the error that ended the run
+                if ending_error is None:
+                    raise
         if old_handler is not None:
             signal.signal(signal.SIGINT, old_handler)
     return state, run_dir
+
+
+def _write_error(run_dir: str, e: OSError, what: str, resume: bool = False, note: str = ""):
+    """A one-line RunDirError for a failed write under `run_dir` (a full disk, a read-only
+    directory), naming the fix."""
+    from dscpp_jax.run_logging import RunDirError, os_error_fix
+    fix = os_error_fix(e, run_dir, run_dir if resume else None)
+    return RunDirError(f"could not {what} under {run_dir} ({e.strerror or e})"
+                       + (f"; {note}" if note else "") + f". Fix: {fix}")
 
 
 def _schedule_done(cfg: Config, state) -> bool:
@@ -306,15 +350,18 @@ def load_run(run_dir: str, step: Optional[int] = None):
 
     from dscpp_jax import checkpoint as ck
     from dscpp_jax import trainer as T
-    from dscpp_jax.run_logging import read_config
     from dscpp_jax import group_train
     if group_train.group_of(run_dir) is not None:   # a seed directory inside a seed group
         return group_train.load_seed(run_dir, step)
     if group_train.is_group_dir(run_dir):
         raise ValueError(f"{run_dir} is a seed group; name one of its seeds, e.g. "
                          f"{os.path.join(run_dir, 's%d' % group_train.read_group(run_dir)['seeds'][0])}")
-    cfg = Config.from_dict(read_config(run_dir)["config"])
-    state = ck.restore_state(run_dir, T.init(jax.random.PRNGKey(cfg.seed), cfg), step)
+    from dscpp_jax.run_logging import load_config
+    cfg = load_config(run_dir)
+    try:
+        state = ck.restore_state(run_dir, T.init(jax.random.PRNGKey(cfg.seed), cfg), step)
+    except ck.NoCheckpointError as e:
+        raise ck.NoCheckpointError(f"run {run_dir} has no checkpoint to load ({e})") from None
     return cfg, state
 
 
@@ -324,8 +371,12 @@ def parse_starts(text: Optional[str]):
     pts = []
     for part in text.replace(" ", "").split(";"):
         if part:
-            x, y = part.split(",")
-            pts.append([float(x), float(y)])
+            try:
+                x, y = part.split(",")
+                pts.append([float(x), float(y)])
+            except ValueError:
+                raise ValueError(f"--starts expects x,y pairs separated by ';' (e.g. "
+                                 f"--starts \"8,8;0,4\"), got {part!r} in {text!r}") from None
     return pts
 
 
@@ -334,9 +385,9 @@ def cmd_eval(args) -> int:
     import numpy as np
 
     from dscpp_jax.evaluate import evaluate
+    starts = parse_starts(args.starts)   # a typo here fails before anything loads
     cfg, state = load_run(args.run)
     key = jax.random.PRNGKey(args.seed)
-    starts = parse_starts(args.starts)
     summary, res = evaluate(state, key, args.episodes, starts)
     summary["iteration"] = int(state.counters.iteration)
     summary["env_steps"] = int(state.counters.env_steps)
@@ -347,23 +398,89 @@ def cmd_eval(args) -> int:
         summary["success_per_start"] = np.asarray(res.success).astype(int).tolist()
     name = "eval" + ("_starts" if starts else "")
     out_json = os.path.join(args.run, f"{name}.json")
-    with open(out_json, "w") as f:
-        json.dump(summary, f, indent=2)
+    try:
+        with open(out_json, "w") as f:
+            json.dump(summary, f, indent=2)
+    except OSError as e:
+        raise _write_error(args.run, e, f"write {name}.json") from None
     print(json.dumps({k: v for k, v in summary.items() if "option_success/" not in k
                       or v == v}, indent=2))
     if not args.no_plot:
         from dscpp_jax import plots
         path = os.path.join(args.run, f"{name}_trajectory.png")
-        plots.plot_trajectory(cfg, res, path, title=f"{cfg.env} {cfg.algo} (iteration "
-                              f"{summary['iteration']})")
+        try:
+            plots.plot_trajectory(cfg, res, path, title=f"{cfg.env} {cfg.algo} (iteration "
+                                  f"{summary['iteration']})")
+        except OSError as e:
+            raise _write_error(args.run, e, f"write {name}_trajectory.png") from None
         print(f"wrote {out_json} and {path}")
     return 0
+
+
+def _video_options(args) -> dict:
+    cams = ("topdown", "follow") if args.camera == "both" else (args.camera,)
+    return dict(cameras=cams, width=args.width, height=args.height, fps=args.fps,
+                every=args.every, max_steps=args.max_steps, crf=args.crf)
+
+
+def write_videos(cfg, state, run_dir: str, out: Optional[str] = None, episodes: int = 1,
+                 starts=None, seed: int = 0, **options) -> dict:
+    """Render evaluation episodes of `state` to MP4 under `out` (default RUN_DIR/videos)."""
+    from dscpp_jax import video
+    out = out or os.path.join(run_dir, "videos")
+    paths = video.render_run(cfg, state, out, episodes=episodes, starts=starts, seed=seed,
+                             **options)
+    for k, p in paths.items():
+        print(f"{k}: {p}")
+    return paths
+
+
+def cmd_video(args) -> int:
+    from dscpp_jax import video
+    try:
+        video.select_gl_backend()   # before JAX starts threads, and before anything compiles
+        video.check_encoder()
+        opts = _video_options(args)
+        video.check_options(**opts)
+    except video.VideoError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    cfg, state = load_run(args.run, args.step)
+    write_videos(cfg, state, args.run, args.out, args.episodes, parse_starts(args.starts),
+                 args.seed, **opts)
+    return 0
+
+
+def _add_video_args(p: argparse.ArgumentParser, prefix: str = "") -> None:
+    """Video options (`prefix` "video-" for `train`, whose --seed/--episodes mean other things)."""
+    p.add_argument(f"--{prefix}camera", dest="camera", default="both",
+                   choices=("topdown", "follow", "both"),
+                   help="top-down view of the whole maze, a camera following the agent, or both "
+                        "(one MP4 each)")
+    p.add_argument(f"--{prefix}width", dest="width", type=int, default=480)
+    p.add_argument(f"--{prefix}height", dest="height", type=int, default=480)
+    p.add_argument(f"--{prefix}fps", dest="fps", type=float, default=30.0,
+                   help="frames per second (an env step is 0.1 s: 10 is real time)")
+    p.add_argument(f"--{prefix}every", dest="every", type=int, default=1, metavar="K",
+                   help="draw every K-th step (and the last): K times shorter, smaller files")
+    p.add_argument(f"--{prefix}max-steps", dest="max_steps", type=int, default=None,
+                   help="cut episodes after this many steps (default: the episode length)")
+    p.add_argument(f"--{prefix}crf", dest="crf", type=int, default=23,
+                   help="H.264 quality: 18 near lossless .. 28 smaller files")
 
 
 def cmd_plot(args) -> int:
     from dscpp_jax import plots
     out = args.out or (os.path.join(args.runs[0], "plots") if len(args.runs) == 1 else "plots")
-    paths = plots.plot_runs(args.runs, out, with_state=not args.curves_only)
+    try:
+        paths = plots.plot_runs(args.runs, out, with_state=not args.curves_only)
+    except OSError as e:
+        if isinstance(e, ValueError):
+            raise
+        from dscpp_jax.run_logging import RunDirError, os_error_fix
+        raise RunDirError(f"could not write the plots to {out} ({e.strerror or e}). Fix: "
+                          f"{os_error_fix(e, out)}, or pick another folder with --out DIR"
+                          ) from None
     for p in paths:
         print(p)
     return 0
@@ -372,9 +489,23 @@ def cmd_plot(args) -> int:
 def cmd_train(args) -> int:
     if getattr(args, "seeds", None) is not None or _resumes_group(args) or _distributed(args):
         return cmd_train_group(args)
+    wandb = None
+    if args.wandb:
+        from dscpp_jax.run_logging import wandb_missing_error
+        missing = wandb_missing_error()
+        if missing:
+            raise ValueError(missing)
+        wandb = {"project": args.wandb_project, "mode": args.wandb_mode}
+    if args.video:   # bad video options fail now, not after training
+        from dscpp_jax import video
+        try:
+            video.check_options(**_video_options(args))
+        except video.VideoError as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 2
     if args.resume:
-        from dscpp_jax.run_logging import read_config
-        cfg = Config.from_dict(read_config(args.resume)["config"])
+        from dscpp_jax.run_logging import load_config
+        cfg = load_config(args.resume)
         extra = _overrides(args.set)
         for name in ("total_env_steps", "total_episodes"):
             if getattr(args, name) is not None:
@@ -393,15 +524,19 @@ def cmd_train(args) -> int:
         run_dir = args.run_dir
     try:
         state, run_dir = train(cfg, run_dir, resume=bool(args.resume), time_budget=args.time_budget,
-                               progress=not args.no_progress)
+                               progress=not args.no_progress, wandb=wandb)
     except TrainingDiverged as e:
         print(f"error: {e}", file=sys.stderr)
         return 3
     if args.resume:
         from dscpp_jax.run_logging import read_config, write_config
         payload = read_config(run_dir)
-        write_config(run_dir, cfg.to_dict(), {k: v for k, v in payload.items()
-                                              if k not in ("config", "versions")})
+        try:
+            write_config(run_dir, cfg.to_dict(), {k: v for k, v in payload.items()
+                                                  if k not in ("config", "versions",
+                                                               "config_defaults")})
+        except OSError as e:
+            raise _write_error(run_dir, e, "update config.json") from None
     import jax
 
     from dscpp_jax.evaluate import evaluate
@@ -415,6 +550,14 @@ def cmd_train(args) -> int:
                               title=f"{cfg.env} {cfg.algo}, iteration {it}, "
                                     f"{int(state.counters.env_steps)} env steps")
         plots.plot_classifiers(cfg, state, os.path.join(out, "classifiers.png"))
+    if args.video:
+        from dscpp_jax import video
+        try:
+            write_videos(cfg, state, run_dir, episodes=args.video_episodes,
+                         **_video_options(args))
+        except video.VideoError as e:   # the run is saved; only its video is missing
+            print(f"error: no video: {e}; render it later with: make video RUN={run_dir}",
+                  file=sys.stderr)
     print(f"run: {run_dir}\nenv steps {int(state.counters.env_steps)}, episodes "
           f"{int(state.counters.episodes)}, eval success {ev['eval/success_rate']:.2f}, "
           f"options {int(ev['eval/num_options'])}")
@@ -515,6 +658,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--seed", type=int, default=0, action=_SeedGiven)
     t.add_argument("--preset", default="fast", choices=PRESETS)
     t.add_argument("--subgoal", default=None, choices=SUBGOALS)
+    t.add_argument("--physics", default=None, choices=("auto", "jax", "warp"),
+                   help="ant physics back end: warp (MuJoCo Warp, default on a GPU with warp-lang "
+                        "installed), jax (MJX; default elsewhere)")
     t.add_argument("--num-envs", dest="num_envs", type=int, default=None)
     t.add_argument("--steps-per-iter", dest="steps_per_iter", type=int, default=None)
     t.add_argument("--total-steps", dest="total_env_steps", type=int, default=None)
@@ -542,6 +688,16 @@ def build_parser() -> argparse.ArgumentParser:
                   f"(default: ${COMPILE_CACHE_ENV}, else {DEFAULT_COMPILE_CACHE}; 'off': none)")
     t.add_argument("--compile-cache", default=None, metavar="DIR", help=cache_help)
     _add_group_arguments(t)
+    t.add_argument("--wandb", action="store_true",
+                   help="also log to Weights & Biases (pip install 'dscpp_jax[wandb]'); a resumed "
+                        "run continues the same wandb run")
+    t.add_argument("--wandb-project", default="dscpp_jax", metavar="NAME")
+    t.add_argument("--wandb-mode", default=None, choices=("online", "offline", "disabled"),
+                   help="default: $WANDB_MODE, else online")
+    t.add_argument("--video", action="store_true",
+                   help="at the end, render evaluation episodes to MP4 in RUN_DIR/videos")
+    t.add_argument("--video-episodes", dest="video_episodes", type=int, default=1)
+    _add_video_args(t, prefix="video-")
     t.set_defaults(func=cmd_train)
 
     e = sub.add_parser("eval", help="evaluate a run's latest checkpoint")
@@ -554,6 +710,19 @@ def build_parser() -> argparse.ArgumentParser:
                    help=det_help)
     e.add_argument("--compile-cache", default=None, metavar="DIR", help=cache_help)
     e.set_defaults(func=cmd_eval)
+
+    v = sub.add_parser("video", help="render evaluation episodes of a run's checkpoint to MP4")
+    v.add_argument("--run", required=True)
+    v.add_argument("--episodes", type=int, default=1)
+    v.add_argument("--starts", default=None, help='start positions "x,y;x,y" (default: task start)')
+    v.add_argument("--seed", type=int, default=0)
+    v.add_argument("--step", type=int, default=None, help="checkpoint step (default: the latest)")
+    v.add_argument("--out", default=None, help="output directory (default: RUN/videos)")
+    _add_video_args(v)
+    v.add_argument("--deterministic", action=argparse.BooleanOptionalAction, default=True,
+                   help=det_help)
+    v.add_argument("--compile-cache", default=None, metavar="DIR", help=cache_help)
+    v.set_defaults(func=cmd_video)
 
     pl = sub.add_parser("plot", help="learning curves (one or many runs) + trajectory/classifier plots")
     pl.add_argument("runs", nargs="+")
@@ -573,6 +742,12 @@ def main(argv: Optional[list[str]] = None) -> int:
         return args.func(args)
     except ValueError as e:
         print(f"error: {e}", file=sys.stderr)
+        return 2
+    except OSError as e:   # a file the command reads or writes; the message names which
+        from dscpp_jax.run_logging import os_error_fix
+        where = getattr(e, "filename", None) or "the run directory"
+        print(f"error: {e.strerror or e} ({where}). Fix: {os_error_fix(e, str(where))}",
+              file=sys.stderr)
         return 2
 
 

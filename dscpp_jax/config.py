@@ -24,9 +24,19 @@ SUBGOALS = ("robust", "dp")
 PRESETS = ("paper", "fast")
 HIERARCHICAL_ALGOS = ("mb_dscpp", "mf_dscpp", "dual", "dsc")
 MODEL_BASED_ALGOS = ("mb_dscpp", "mb_flat", "mb_flat_value")
+# Config fields that were removed, with the value that meant "off" (their default then): a saved
+# run that set one of them otherwise cannot be reproduced by this version (`Config.from_saved`).
+# Runs written since also record every default beside their config ("config_defaults").
+RETIRED_FIELDS: dict[str, Any] = dict(
+    td3_upright_weight=0.0, td3_upright_min=0.5, td3_absorb_fallen=False,
+    mpc_upright_weight=0.0, mpc_upright_min=0.5)
 # Fields only the host driver reads (the TrainState carries `Config.device_view()`).
 HOST_ONLY_DEFAULTS = dict(seed=0, total_env_steps=1, total_episodes=0, eval_every=0,
                           log_every=1, checkpoint_every=0, keep_checkpoints=1, preset="paper")
+
+
+# Values of fields that a saved config may lack because it predates them: what those runs used.
+LEGACY_DEFAULTS = dict(physics="jax")
 
 
 @dataclass(frozen=True)
@@ -36,6 +46,9 @@ class Config:
     # --- task and algorithm -------------------------------------------------------------------
     env: str = "point_u_maze"          # envs.make name
     ant_integrator: str = "Euler"      # ant physics: Euler (fast) | RK4 (D4RL's) | implicitfast
+    physics: str = "auto"              # ant physics back end: jax (MJX) | warp (MuJoCo Warp) |
+                                       # auto (warp on a GPU with warp-lang installed, else jax)
+    group_size: int = 1                # seeds trained together in one program (seed groups)
     algo: str = "mb_dscpp"             # one of ALGOS
     subgoal: str = "robust"            # robust | dp
     seed: int = 0
@@ -70,11 +83,6 @@ class Config:
     td3_lr: float = -1.0               # < 0: the algorithm's preset (1e-5 model based, 3e-4 free)
     td3_clip_targets: bool = False     # clip TD targets to [-1 / (1 - discount), 0], the range of
                                        # every value under the 0 / -1 reward (not in the original)
-    td3_absorb_fallen: bool = False    # ant: a transition into a state on its back (upright < 0)
-                                       # gets the value of never reaching the goal,
-                                       # -1 / (1 - discount) (her.absorb_failures; not in the original)
-    td3_upright_weight: float = 0.0    # ant: TD3 reward - W * max(0, td3_upright_min - upright(s'))
-    td3_upright_min: float = 0.5       # per step (her.tilt_penalty; 0: off, not in the original)
     td3_action_l2: float = 0.0         # actor loss + L2 * mean(a^2) (OpenAI Baselines' HER: 1.0;
                                        # 0: off, as in the original)
     discount: float = 0.99
@@ -98,8 +106,6 @@ class Config:
     mpc_horizon: int = 7
     mpc_discount: float = 0.95
     mpc_dtype: str = "float32"
-    mpc_upright_weight: float = 0.0    # ant: cost per unit of predicted tilt below mpc_upright_min
-    mpc_upright_min: float = 0.5       # (0: off, the paper's eq. 2; see mpc.MPCConfig)
     mpc_backend: str = "auto"          # auto: the fused kernel on a GPU with bfloat16, else XLA
     svm_backend: str = "auto"          # auto: the fused SMO kernel on a GPU, else the XLA loop
 
@@ -183,7 +189,36 @@ class Config:
     @classmethod
     def from_dict(cls, d: dict) -> "Config":
         names = {f.name for f in dataclasses.fields(cls)}
+        d = {**LEGACY_DEFAULTS, **d}
         return cls(**{k: v for k, v in d.items() if k in names})
+
+    @classmethod
+    def from_saved(cls, d: Any, defaults: Any = None, source: str = "this run") -> "Config":
+        """The Config of a saved run (config.json's "config"), checked against this version.
+
+        Fields the run lacks (added since) take their defaults, which is what it used. Fields this
+        version no longer has are ignored when they hold the value that meant "off" (the default
+        recorded beside the run, `defaults`, else `RETIRED_FIELDS`); any other value raises a
+        ValueError naming them, since the run's results depend on behaviour that is gone."""
+        if not isinstance(d, dict):
+            raise ValueError(f"{source}: config.json's \"config\" is not a mapping of Config fields")
+        names = {f.name for f in dataclasses.fields(cls)}
+        off = {**RETIRED_FIELDS, **(defaults if isinstance(defaults, dict) else {})}
+        _missing = object()
+        gone = {k: v for k, v in d.items() if k not in names and off.get(k, _missing) != v}
+        if gone:
+            said = ", ".join(f"{k}={v!r}" + (f" (off: {off[k]!r})" if k in off else "")
+                             for k, v in sorted(gone.items()))
+            raise ValueError(
+                f"{source} was made by another (older) version of dscpp_jax: it sets {said}, "
+                f"which this version no longer has, so it cannot continue or evaluate that run as "
+                f"it was trained. Use the version that made it (its commit is config.json's "
+                f"versions.dscpp_jax_git) or train a new run")
+        try:
+            return cls.from_dict(d)
+        except TypeError as e:
+            raise ValueError(f"{source}: config.json's \"config\" does not fit this version's "
+                             f"Config ({e})") from None
 
     def validate(self) -> "Config":
         """Raise a ValueError naming the fix for any impossible setting; return self."""
@@ -219,23 +254,10 @@ class Config:
              f"td3_sample_block must be >= 1 (1: one replay sample per gradient step), got "
              f"{self.td3_sample_block}")
         need(self.mpc_dtype in ("float32", "bfloat16"), "mpc_dtype must be float32 or bfloat16")
-        need(self.mpc_upright_weight >= 0 and -1.0 <= self.mpc_upright_min <= 1.0,
-             "mpc_upright_weight must be >= 0 and mpc_upright_min in [-1, 1]")
-        need(self.mpc_upright_weight == 0 or not self.env.startswith("point_"),
-             "mpc_upright_weight needs a body that can tip over (the ant envs); the point mass has "
-             "no orientation: set it to 0")
-        need(not self.td3_absorb_fallen or not self.env.startswith("point_"),
-             "td3_absorb_fallen needs a body that can tip over (the ant envs); the point mass "
-             "cannot fall: set it to false")
-        need(not self.td3_absorb_fallen or self.discount < 1.0,
-             "td3_absorb_fallen needs discount < 1 (with discount 1 a fallen state's value is "
-             "unbounded); lower discount or set td3_absorb_fallen=false")
-        need(self.td3_upright_weight >= 0 and -1.0 <= self.td3_upright_min <= 1.0,
-             "td3_upright_weight must be >= 0 and td3_upright_min in [-1, 1]")
-        need(self.td3_upright_weight == 0 or not self.env.startswith("point_"),
-             "td3_upright_weight needs a body that can tip over (the ant envs); the point mass "
-             "cannot tilt: set it to 0")
         need(self.td3_action_l2 >= 0, "td3_action_l2 must be >= 0 (0: off)")
+        need(self.physics in ("auto", "jax", "warp"),
+             f"physics={self.physics!r}; choose auto, jax (MJX) or warp (MuJoCo Warp)")
+        need(self.group_size >= 1, f"group_size={self.group_size} must be >= 1")
         need(self.ant_integrator in ("Euler", "RK4", "implicitfast"),
              f"ant_integrator must be Euler, RK4 or implicitfast, got {self.ant_integrator!r}")
         for name in ("mpc_backend", "svm_backend"):
@@ -274,40 +296,25 @@ def preset(name: str = "fast", env: str = "point_u_maze", algo: str = "mb_dscpp"
            **overrides: Any) -> Config:
     """A named preset for an env and algorithm, with field overrides applied last.
 
-    paper: B = 1, T = 1000 (one episode per step), one TD3 step per transition, 14,000 x 7 MPC,
-      2,001 episodes, and on the ant D4RL's RK4 integrator. Differences from the original:
-      learning happens once per T steps rather than after every option rollout; classifiers are
-      refit once per T steps.
-    fast (point-mass twins): 16 envs x 100 steps per iteration, 500-step episodes, 8 warm-up
-      episodes, 128 x 7 MPC with a 64-unit model, a 64-unit actor/critic trained at 3e-4 with 0.25
-      TD3 steps per transition (also for the model-based variant: 1e-5 learns too slowly for a
-      few-minute budget), gestation 5 (the paper's U-maze value, appendix Table 4), 100k env steps.
-      Meant for a laptop CPU.
-    fast (ant): 128 envs x 50 steps per iteration, 1000-step episodes, 4,096 x 7 MPC in bfloat16
-      (the fused kernel on a GPU), 0.1 model steps per transition; TD3: 0.25 steps per transition
-      at batch 256 and learning rate 1e-4 model based, the paper's one step per transition at
-      batch 512 and 3e-4 model free (0.5 steps at batch 256 reached 0.19 on the U-maze at 2,001
-      episodes, this 0.31: experiments/results/train_ant/episodes2001), TD targets clipped to
-      [-1 / (1 - discount), 0] (without it the model-based critic's loss climbed to 40-290 on
-      four of five U-maze seeds, and success from the start fell with it: 0.58 vs 0.77 on seeds
-      1-4, experiments/results/train_ant/clip_targets), gestation
-      5 (10 on four rooms: appendix Table 4), up to 24 options (the original has no cap; 12 filled
-      up before the U-maze chain reached the start), 16 evaluation episodes every 25 iterations,
-      stops after the paper's 2,001 episodes (or 4M env steps). Ant physics: D4RL's RK4
-      integrator (fewer tip-overs: U-maze 0.95 +- 0.02 over five seeds against 0.89 +- 0.02 with
-      Euler, at 1.8x the wall-clock, experiments/results/train_ant/seeds_rk4; four rooms 0.93 +-
-      0.04 over four seeds against 0.71 +- 0.14 over five with Euler, at 2.1x,
-      experiments/results/train_ant/rk4_four_rooms). The model-free algorithms' actors carry
-      an L2 penalty on their actions (td3_action_l2=1, as OpenAI Baselines' HER): MF-DSC++ on
-      the U-maze reached 0.90 +- 0.04 over five seeds with it, against 0.77 on the two seeds
-      without it, and four rooms 0.91 on seed 0 (experiments/results/train_ant/mf_l2_seeds);
-      the flat TD3+HER and DSC baselines get it too, so that every model-free learner runs the
-      same TD3, as in the paper. TD3 draws 32 minibatches per replay sampling call
-      (td3_sample_block=32, the same updates on a different random stream): 2.87 s -> 0.75 s for
-      the 6,400 TD3 steps of an MF-DSC++ iteration on one H200
-      (experiments/results/profile_train_step.md). With both, MF-DSC++ reached 0.92 +- 0.01 on
-      the U-maze over five seeds in 6.2-6.5 min and 0.91 +- 0.03 on four rooms over four seeds in
-      9.7-11.4 min (experiments/results/train_ant/mf_fast_preset). Meant for one GPU.
+    paper: the published schedule as far as a batched design allows: B = 1 environment, T = 1000
+      steps per iteration, one TD3 step per transition, 14,000 x 7 MPC, 50 warm-up episodes, 2,001
+      episodes, and on the ant D4RL's RK4 integrator. Learning and classifier refits happen once
+      per T steps rather than after every option rollout. Slow by design (hours on the ant).
+    fast, point-mass twins (a laptop CPU, a few minutes): 16 envs x 100 steps, 500-step episodes,
+      8 warm-up episodes, 128 x 7 MPC with a 2 x 64 model, a 2 x 64 actor/critic at 3e-4 with 0.25
+      TD3 steps per transition for both variants, gestation 5 (the paper's U-maze value), at most
+      8 options, 100k env steps.
+    fast, ant mazes (one GPU, 2,001 episodes in about 6-14 minutes): 128 envs x 50 steps,
+      1000-step episodes, 4,096 x 7 MPC in bfloat16 (the fused kernel on a GPU), 0.1 model steps
+      per transition; TD3 at 0.25 steps per transition, batch 256 and 1e-4 (model based) or the
+      paper's 1 step per transition at batch 512 and 3e-4 with an L2 action penalty of 1 (model
+      free); TD targets clipped to [-1 / (1 - discount), 0] (keeps the model-based critic stable);
+      32 minibatches per replay sampling call (speed); RK4 (fewer tip-overs); gestation 5 (10 on
+      four rooms, appendix Table 4); up to 24 options; 16 evaluation episodes every 25
+      iterations; stops at 2,001 episodes (or 4M env steps).
+
+    Why each setting, with the measurements: docs/training.md ("Presets") and
+    experiments/results/train_ant/README.md.
     """
     if name not in PRESETS:
         raise ValueError(f"unknown preset {name!r}; choose one of {PRESETS}")
@@ -359,9 +366,21 @@ def parse_value(field_name: str, text: str) -> Any:
             return True
         if text.lower() in ("0", "false", "no", "off"):
             return False
-        raise ValueError(f"{field_name} expects true/false, got {text!r}")
-    if t == "int":
-        return int(float(text)) if "e" in text.lower() else int(text)
-    if t == "float":
-        return float(text)
+        raise ValueError(f"--set {field_name}={text!r}: {field_name} is true or false, e.g. "
+                         f"--set {field_name}=true")
+    try:
+        if t == "int":
+            v = float(text) if "e" in text.lower() else int(text)
+            if v != int(v):
+                raise ValueError(text)
+            return int(v)
+        if t == "float":
+            return float(text)
+    except ValueError:
+        example = getattr(Config(), field_name)
+        raise ValueError(f"--set {field_name}={text!r}: {field_name} is {_TYPE_NAMES[t]}, e.g. "
+                         f"--set {field_name}={example}") from None
     return text
+
+
+_TYPE_NAMES = {"int": "an integer", "float": "a number"}

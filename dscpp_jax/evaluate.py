@@ -14,9 +14,11 @@ from typing import Any, Dict, NamedTuple, Optional
 import flax.struct
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from dscpp_jax import trainer as T
 from dscpp_jax.config import Config
+from envs.goal_env import select_states
 
 
 @flax.struct.dataclass
@@ -33,12 +35,22 @@ class EvalResult:
     upright: jax.Array            # (N,) float32: env.upright at the end (below 0: on its back)
     chain_probability: jax.Array  # () from the training statistics (eq. 3)
     num_options: jax.Array        # () options in the chain (including global and goal options)
+    # Filled only by `evaluate_episodes(..., record=True)` (videos); None otherwise.
+    obs_seq: Optional[jax.Array] = None      # (L + 1, N, obs_dim) observations, frozen after the end
+    subgoal_seq: Optional[jax.Array] = None  # (L, N, 2) the running option's subgoal at each step
+    qpos_seq: Optional[jax.Array] = None     # (L + 1, N, nq) MuJoCo qpos (MJX envs only)
 
 
-def _eval_impl(state: T.TrainState, key, num_episodes: int, starts=None) -> EvalResult:
+def _eval_impl(state: T.TrainState, key, num_episodes: int, starts=None, record: bool = False,
+               num_steps: Optional[int] = None) -> EvalResult:
+    """`record` (static) also keeps the observations, subgoals and (MJX envs) qpos of every step;
+    off, the program is the same as without it. `num_steps` (static) caps the episodes at fewer
+    steps than `config.episode_length` (an episode cut short counts as not successful)."""
     config: Config = state.config
-    env = T.make_env(config)
     N, L, K = num_episodes, config.episode_length, config.max_options
+    env = T.make_env(config, worlds=config.group_size * N)
+    if num_steps is not None:
+        L = max(1, min(L, int(num_steps)))
     k_reset, k_run = jax.random.split(key)
     ks = jax.random.split(k_reset, N)
     if starts is None:
@@ -55,15 +67,14 @@ def _eval_impl(state: T.TrainState, key, num_episodes: int, starts=None) -> Eval
 
     def body(carry):
         (t, es, ex, active, success, steps, n_exec, n_succ, xy_buf, opt_buf, act_buf, n_fail,
-         n_global) = carry
+         n_global, rec) = carry
         k_opt, k_act = jax.random.split(jax.random.fold_in(k_run, t))
         obs = es.obs
         ex = T._choose_options(config, env, chain, dp_table, td3, ex, obs, k_opt, active,
                                evaluation=True)
         acts = T._policy_actions(config, td3, dyn, obs, ex.subgoal, k_act, False, 0.0)
         nes = jax.vmap(env.step)(es, acts)
-        nes = jax.tree_util.tree_map(
-            lambda n, o: jnp.where(active.reshape((N,) + (1,) * (n.ndim - 1)), n, o), nes, es)
+        nes = select_states(active, nes, es)
         ex = T._push_traj(ex, nes.obs[:, :2])
         done = (nes.done > 0) & active
         ended, osucc = T._option_end(config, env, chain, ex, nes.obs[:, :2], done)
@@ -76,23 +87,29 @@ def _eval_impl(state: T.TrainState, key, num_episodes: int, starts=None) -> Eval
         opt_buf = opt_buf.at[t].set(jnp.where(active, ex.option, T.NO_OPTION))
         act_buf = act_buf.at[t].set(active)
         xy_buf = xy_buf.at[t + 1].set(nes.obs[:, :2])
+        if record:
+            rec = dict(rec, obs=rec["obs"].at[t + 1].set(nes.obs),
+                       subgoal=rec["subgoal"].at[t].set(ex.subgoal))
+            if "qpos" in rec:
+                rec["qpos"] = rec["qpos"].at[t + 1].set(nes.pipeline_state.qpos)
         ex = ex.replace(option=jnp.where(ended, T.NO_OPTION, ex.option))
         success = success | (done & (nes.info["success"] > 0))
         steps = steps + active.astype(jnp.int32)
         active = active & ~done
         return (t + 1, nes, ex, active, success, steps, n_exec, n_succ, xy_buf, opt_buf, act_buf,
-                n_fail, n_global)
+                n_fail, n_global, rec)
 
     z = jnp.zeros((K,), jnp.int32)
     xy0 = jnp.broadcast_to(es.obs[None, :, :2], (L + 1, N, 2))
     carry0 = (jnp.zeros((), jnp.int32), es, ex, jnp.ones((N,), bool), jnp.zeros((N,), bool),
               jnp.zeros((N,), jnp.int32), z, z, xy0, jnp.full((L, N), T.NO_OPTION, jnp.int32),
-              jnp.zeros((L, N), bool), jnp.zeros((N,), jnp.int32), jnp.zeros((N,), jnp.int32))
+              jnp.zeros((L, N), bool), jnp.zeros((N,), jnp.int32), jnp.zeros((N,), jnp.int32),
+              _record_init(es, L) if record else {})
     carry = jax.lax.while_loop(cond, body, carry0)
-    t_end, es_end, _, _, success, steps, n_exec, n_succ, xy, opt, act, n_fail, n_global = carry
+    t_end, es_end, _, _, success, steps, n_exec, n_succ, xy, opt, act, n_fail, n_global, rec = carry
     # positions after an episode ended stay where it ended
-    last = jnp.take_along_axis(xy, steps[None, :, None], axis=0)
-    xy = jnp.where((jnp.arange(L + 1)[:, None] > steps[None, :])[..., None], last, xy)
+    xy = _freeze_after_end(xy, steps)
+    rec = {k: (v if k == "subgoal" else _freeze_after_end(v, steps)) for k, v in rec.items()}
     if config.hierarchical:
         cm = T._chain_metrics(config, chain)
         cp, nopt = cm["options/chain_probability"], cm["options/num_options"]
@@ -104,11 +121,33 @@ def _eval_impl(state: T.TrainState, key, num_episodes: int, starts=None) -> Eval
                       option_failures=n_fail, global_steps=n_global,
                       upright=jnp.asarray(env.upright(es_end.obs), jnp.float32),
                       chain_probability=jnp.asarray(cp, jnp.float32),
-                      num_options=jnp.asarray(nopt, jnp.float32))
+                      num_options=jnp.asarray(nopt, jnp.float32),
+                      obs_seq=rec.get("obs"), subgoal_seq=rec.get("subgoal"),
+                      qpos_seq=rec.get("qpos"))
 
 
-evaluate_episodes = jax.jit(_eval_impl, static_argnames=("num_episodes",))
-"""Jitted `evaluate_episodes(state, key, num_episodes, starts=None) -> EvalResult`."""
+def _record_init(es, L: int) -> Dict[str, jax.Array]:
+    """Buffers of the per-step record: row 0 holds the reset state."""
+    N = es.obs.shape[0]
+    rec = {"obs": jnp.broadcast_to(es.obs[None], (L + 1,) + es.obs.shape),
+           "subgoal": jnp.zeros((L, N, 2), jnp.float32)}
+    qpos = getattr(es.pipeline_state, "qpos", None)
+    if qpos is not None:
+        rec["qpos"] = jnp.broadcast_to(qpos[None], (L + 1,) + qpos.shape)
+    return rec
+
+
+def _freeze_after_end(seq, steps):
+    """(L + 1, N, ...) rows after each episode's last step repeat that step's row."""
+    idx = steps.reshape((1, -1) + (1,) * (seq.ndim - 2))
+    last = jnp.take_along_axis(seq, idx, axis=0)
+    after = (jnp.arange(seq.shape[0])[:, None] > steps[None, :]).reshape(seq.shape[:2] + (1,) * (seq.ndim - 2))
+    return jnp.where(after, last, seq)
+
+
+evaluate_episodes = jax.jit(_eval_impl, static_argnames=("num_episodes", "record", "num_steps"))
+"""Jitted `evaluate_episodes(state, key, num_episodes, starts=None, record=False, num_steps=None)
+-> EvalResult` (`record`: also the per-step observations, subgoals and qpos, for videos)."""
 
 
 def summarize(result: EvalResult, prefix: str = "eval/") -> Dict[str, float]:
@@ -142,10 +181,19 @@ def evaluate(state: T.TrainState, key: Optional[jax.Array] = None, num_episodes:
     The default key depends only on the iteration, so evaluation never consumes the training
     PRNG stream.
     """
+    if not isinstance(state, T.TrainState):
+        raise TypeError(f"evaluate(state, ...) needs the TrainState made by dscpp_jax.init or "
+                        f"train_step, got {type(state).__name__}")
     cfg = state.config
     if starts is not None:
+        shape = np.shape(starts)
+        if len(shape) not in (1, 2) or shape[-1] != 2 or int(np.prod(shape)) == 0:
+            raise ValueError(f"starts must be (x, y) positions, shape (N, 2) (e.g. [[8.0, 8.0], "
+                             f"[0.0, 4.0]]), got shape {tuple(shape)}")
         starts = jnp.asarray(starts, jnp.float32).reshape(-1, 2)
         num_episodes = int(starts.shape[0])
+    if num_episodes is not None and int(num_episodes) < 1:
+        raise ValueError(f"num_episodes must be >= 1, got {num_episodes}")
     n = int(num_episodes or cfg.eval_episodes)
     if key is None:
         key = jax.random.fold_in(jax.random.PRNGKey(1_000_003),

@@ -17,9 +17,6 @@ Strategies (the relabelled goal is an achieved xy, ``next_obs[..., :goal_dim]``)
 Reward and continuation are recomputed for the (possibly new) goal: reward 0 within
 ``goal_tolerance`` of the goal else -1; ``discount`` 0 only when the goal is reached (time-outs and
 segment ends bootstrap).
-
-:func:`absorb_failures` (optional, not in the paper) then gives transitions into a failed state,
-such as the ant on its back, the value of never reaching a goal.
 """
 from __future__ import annotations
 
@@ -126,39 +123,3 @@ def her_sample(
         buf, rows, envs, u_future, u_relabel, strategy, relabel_prob, max_segment, goal_tolerance
     )
 
-
-def absorb_failures(batch: Transition, failed: jax.Array, discount: float) -> Transition:
-    """Treat transitions into a failed state (e.g. the ant on its back) as absorbing.
-
-    Not in the paper. A body that has tipped over can no longer reach any goal, so the true value
-    of such a state under the 0 / -1 reward is that of never reaching the goal,
-    ``-1 / (1 - discount)``. Left to bootstrap, the critic learns it slowly, and hindsight goals
-    that the body still "reaches" while it wriggles on its back teach it the opposite. Here every
-    transition whose ``next_obs`` is ``failed`` (shape ``(B,)``) and does not reach its goal gets
-    reward ``-1 / (1 - discount)`` and continuation 0, so its TD target is exactly that value.
-    Transitions that reach their goal keep reward 0 (the task counts them as successes).
-    """
-    if not 0.0 <= discount < 1.0:
-        raise ValueError(f"absorb_failures: discount must be in [0, 1), got {discount}")
-    hit = jnp.asarray(failed, bool) & (batch.discount > 0)
-    never = jnp.float32(-1.0 / (1.0 - discount))
-    return batch.replace(reward=jnp.where(hit, never, batch.reward).astype(batch.reward.dtype),
-                         discount=jnp.where(hit, 0.0, batch.discount).astype(batch.discount.dtype))
-
-
-def tilt_penalty(batch: Transition, upright: jax.Array, weight: float,
-                 upright_min: float = 0.5) -> Transition:
-    """Charge ``weight * max(0, upright_min - upright)`` per transition on top of the task reward.
-
-    Not in the paper. ``upright`` (shape ``(B,)``) is the uprightness of ``next_obs``: the world z
-    of the body's z axis, 1 upright and -1 on its back. A tilted step costs more than the task's
-    -1, so the critic ranks actions that tip the body below those that keep it on its feet, well
-    before it has fallen. Continuation flags are unchanged; a transition that reaches its goal
-    while tilted pays the penalty too. The values then lie in
-    ``[-(1 + weight * (1 + upright_min)) / (1 - discount), 0]``.
-    """
-    if weight < 0 or not -1.0 <= upright_min <= 1.0:
-        raise ValueError(f"tilt_penalty: weight must be >= 0 and upright_min in [-1, 1], got "
-                         f"{weight}, {upright_min}")
-    tilt = jnp.maximum(jnp.float32(upright_min) - jnp.asarray(upright, jnp.float32), 0.0)
-    return batch.replace(reward=(batch.reward - jnp.float32(weight) * tilt).astype(batch.reward.dtype))

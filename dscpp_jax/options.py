@@ -429,11 +429,14 @@ def refresh_subgoal_cache(chain: Chain, mask=None) -> Chain:
     return chain.replace(pess_ok=pess_ok, robust_ok=robust_ok)
 
 
-def refit(chain: Chain, mask=None) -> Chain:
+def refit(chain: Chain, mask=None, seed_axis=None) -> Chain:
     """Refit the initiation classifiers of the rows in ``mask`` (default: ``chain.dirty``), vmapped
     over all K rows (rows outside the mask see no data and keep their classifiers). Only rows in
     use, other than the global option, with at least one positive trajectory are fitted. Clears
-    their dirty flags and refreshes their robust-sampling cache."""
+    their dirty flags and refreshes their robust-sampling cache.
+
+    ``seed_axis``: the name of an enclosing ``vmap`` axis over independent runs, if any; the fit
+    then runs only when some run has a row to fit, not on every call."""
     cfg = chain.cfg
     K, P, L = cfg.max_options, cfg.max_pos_traj, cfg.traj_len
     mask = chain.dirty if mask is None else jnp.asarray(mask, bool)
@@ -452,7 +455,13 @@ def refit(chain: Chain, mask=None) -> Chain:
         return refresh_subgoal_cache(c.replace(clf=clf, fitted=_fitted_flags(clf)), do)
 
     # nothing to fit (most iterations late in training): skip the set-up work entirely
-    chain = jax.lax.cond(do.any(), fit, lambda c: c, chain)
+    if seed_axis is None:
+        chain = jax.lax.cond(do.any(), fit, lambda c: c, chain)
+    else:
+        def fit_some(c):
+            return jax.tree_util.tree_map(lambda a, b: jnp.where(do.any(), a, b), fit(c), c)
+        any_do = jax.lax.psum(do.any().astype(jnp.int32), seed_axis) > 0
+        chain = jax.lax.cond(any_do, fit_some, lambda c: c, chain)
     return chain.replace(dirty=chain.dirty & ~mask)
 
 

@@ -28,6 +28,15 @@ def _draw_maze(ax, layout):
     ax.plot(*layout.goal_xy, "*", color="gold", mec="k", ms=16, zorder=5, label="goal")
 
 
+def option_color(option: int, max_options: int) -> tuple:
+    """RGBA (floats) of an option index in the trajectory plots (and the videos); -1 (no option
+    running) is grey."""
+    if option < 0:
+        return (0.5, 0.5, 0.5, 1.0)
+    cmap = _plt().get_cmap("tab10" if max_options <= 10 else "tab20")
+    return tuple(float(c) for c in cmap(int(option) % cmap.N))
+
+
 def _layout(cfg):
     from dscpp_jax.trainer import make_env
     return make_env(cfg).layout
@@ -51,7 +60,7 @@ def plot_trajectory(cfg, result, path: str, title: str = "", max_episodes: int =
     drawn = list(fails[:n_f]) + list(wins[:max_episodes - n_f])
     K = int(cfg.max_options)
     cmap = plt.get_cmap("tab10" if K <= 10 else "tab20")
-    fig, ax = plt.subplots(figsize=(6, 6))
+    fig, ax = plt.subplots(figsize=(7.6, 6))
     _draw_maze(ax, _layout(cfg))
     used = set()
     for e in drawn:
@@ -72,7 +81,8 @@ def plot_trajectory(cfg, result, path: str, title: str = "", max_episodes: int =
         if flip.any():
             ax.scatter(end[fails[flip], 0], end[fails[flip], 1], marker="v", c="red", s=40,
                        zorder=5, label=f"failed on its back ({int(flip.sum())})")
-    ax.legend(loc="best", fontsize=7)
+    # beside the maze, never over it (on the larger mazes every spot inside holds a corridor)
+    ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0.0, fontsize=7)
     ax.set_title(title or f"{cfg.env} {cfg.algo}", fontsize=10)
     ax.set_xlabel(f"x   (success {succ_e.mean():.0%} of {xy.shape[1]} episodes; "
                   f"{len(drawn)} drawn, {n_f} failed)")
@@ -136,7 +146,10 @@ def plot_classifiers(cfg, state, path: str, resolution: int = 80) -> str:
 
 def _curve(run_dir: str, column: str, x_column: str = "env_steps"):
     from dscpp_jax.run_logging import read_metrics
-    m = read_metrics(run_dir)
+    try:
+        m = read_metrics(run_dir)
+    except FileNotFoundError:   # a run that has not logged an iteration yet
+        return None
     if column not in m or x_column not in m:
         return None
     x = np.asarray(m[x_column], float)
@@ -221,6 +234,9 @@ def plot_curves(run_dirs: Sequence[str], path: str, group: bool = True) -> str:
     missing = [r for r in missing if not os.path.isdir(r)]
     if missing:
         raise ValueError(f"not a run directory: {', '.join(missing)}")
+    from dscpp_jax.run_logging import read_config
+    for r in [r for rs in labelled.values() for r in rs] + plain:
+        read_config(r)   # a RunDirError saying what is wrong with a directory that is no run
     groups = _group_runs(plain) if group else {
         os.path.basename(os.path.normpath(r)): [r] for r in plain}
     groups.update(labelled)
@@ -290,6 +306,6 @@ def _save(fig, path: str, rect=None) -> None:
     if d:
         os.makedirs(d, exist_ok=True)
     fig.tight_layout(rect=rect)
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=110, bbox_inches="tight")
     import matplotlib.pyplot as plt
     plt.close(fig)

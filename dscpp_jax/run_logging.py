@@ -1,17 +1,77 @@
 """Host-side run logging: metrics.csv (always), TensorBoard events (when tensorboardX is installed),
-config.json with library versions."""
+Weights & Biases (on request, when wandb is installed), config.json with library versions; and
+reading a run directory back with errors that say what is wrong with it."""
 from __future__ import annotations
 
 import csv
+import errno
 import json
 import math
 import os
 import platform
 import subprocess
 import sys
-from typing import Any, Mapping
+import tempfile
+import uuid
+from typing import Any, Mapping, Optional
 
 BASE_COLUMNS = ("iteration", "env_steps", "episodes", "wall_clock")
+RUN_DIR_LAYOUT = ("a run directory, as `train` makes it, holds config.json, metrics.csv and "
+                  "checkpoints/")
+WANDB_ID_FILE = "wandb_run.json"
+
+
+class RunDirError(ValueError):
+    """A run directory that cannot be read or written; the message says what to do."""
+
+
+class WandbError(ValueError):
+    """Weights & Biases logging was asked for but cannot start; the message says what to do."""
+
+
+def os_error_fix(e: BaseException, path: str, resume_dir: Optional[str] = None) -> str:
+    """One sentence on why writing `path` failed and what to do about it (errno-aware; finds an
+    OSError also where a library wrapped it)."""
+    err, seen = None, e
+    while seen is not None and err is None:
+        if isinstance(seen, OSError) and seen.errno:
+            err = seen.errno
+        seen = seen.__cause__ or seen.__context__
+    text = str(e)
+    again = f" and continue with `train --resume {resume_dir}`" if resume_dir else ""
+    if err in (errno.ENOSPC, errno.EDQUOT) or "No space left" in text or "quota" in text.lower():
+        return f"the disk holding {path} is full: free space on it{again}"
+    if err in (errno.EROFS, errno.EACCES, errno.EPERM) or "Read-only" in text or \
+            "Permission denied" in text:
+        return (f"{path} is not writable: make it writable (or copy the run directory somewhere "
+                f"writable){again}")
+    return f"check the disk and the permissions of {path} ({text}){again}"
+
+
+def atomic_write(path: str, text: str) -> None:
+    """Write `path` through a temporary file and a rename: a failed write (a full disk) leaves
+    the old file as it was."""
+    d = os.path.dirname(os.path.abspath(path))
+    fd, tmp = tempfile.mkstemp(prefix="." + os.path.basename(path) + ".", dir=d)
+    try:
+        with os.fdopen(fd, "w", newline="") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
+
+
+def _csv_text(rows) -> str:
+    import io
+    buf = io.StringIO()
+    csv.writer(buf).writerows(rows)
+    return buf.getvalue()
 
 
 def library_versions() -> dict[str, str]:
@@ -56,16 +116,49 @@ def _git_commit(source_file: str) -> str:
 
 def write_config(run_dir: str, config_dict: Mapping[str, Any], extra: Mapping[str, Any] | None = None
                  ) -> None:
-    payload = {"config": dict(config_dict), "versions": library_versions()}
+    """config.json: the config, library versions, and every Config default of this version
+    ("config_defaults"), so that a later version that dropped a field knows its "off" value."""
+    from dscpp_jax.config import Config
+    payload = {"config": dict(config_dict), "versions": library_versions(),
+               "config_defaults": Config().to_dict()}
     if extra:
         payload.update(extra)
-    with open(os.path.join(run_dir, "config.json"), "w") as f:
-        json.dump(payload, f, indent=2, sort_keys=True)
+    atomic_write(os.path.join(run_dir, "config.json"), json.dumps(payload, indent=2, sort_keys=True))
 
 
 def read_config(run_dir: str) -> dict:
-    with open(os.path.join(run_dir, "config.json")) as f:
-        return json.load(f)
+    """config.json of a run directory; a RunDirError says what is wrong when it is not one."""
+    path = os.path.join(run_dir, "config.json")
+    if not os.path.isdir(run_dir):
+        what = "does not exist" if not os.path.exists(run_dir) else "is not a directory"
+        raise RunDirError(f"run directory {run_dir} {what}: {RUN_DIR_LAYOUT} (e.g. "
+                          f"runs/point_u_maze-mb_dscpp-s0-<time>); check the path")
+    if not os.path.isfile(path):
+        raise RunDirError(f"{run_dir} is not a run directory (it has no config.json): "
+                          f"{RUN_DIR_LAYOUT}; pass the directory that `train` printed")
+    try:
+        with open(path) as f:
+            payload = json.load(f)
+    except OSError as e:
+        raise RunDirError(f"cannot read {path} ({e.strerror or e}): make it readable") from None
+    except ValueError as e:   # JSONDecodeError, UnicodeDecodeError
+        raise RunDirError(f"{path} is not valid JSON ({e}): the run's config file is damaged or "
+                          f"not one that `train` wrote; {RUN_DIR_LAYOUT}") from None
+    if not isinstance(payload, dict) or not isinstance(payload.get("config"), dict):
+        raise RunDirError(f"{path} has no \"config\" section: it is not the config file of a "
+                          f"dscpp_jax run; {RUN_DIR_LAYOUT}")
+    return payload
+
+
+def load_config(run_dir: str):
+    """The run's Config, checked against this version (see `Config.from_saved`)."""
+    from dscpp_jax.config import Config
+    payload = read_config(run_dir)
+    try:
+        return Config.from_saved(payload["config"], payload.get("config_defaults"),
+                                 source=f"run {run_dir}")
+    except ValueError as e:
+        raise RunDirError(str(e)) from None
 
 
 def _fmt(v: Any) -> str:
@@ -90,7 +183,8 @@ class RunLogger:
     """
 
     def __init__(self, run_dir: str, columns: list[str] | None = None,
-                 resume_iteration: int | None = None, tensorboard: bool = True):
+                 resume_iteration: int | None = None, tensorboard: bool = True,
+                 wandb: Optional[Mapping[str, Any]] = None):
         self.run_dir = run_dir
         self.path = os.path.join(run_dir, "metrics.csv")
         self.columns: list[str] | None = None
@@ -101,10 +195,12 @@ class RunLogger:
                 self.columns = rows[0]
                 keep = [rows[0]]
                 for r in rows[1:]:
+                    if len(r) != len(rows[0]):
+                        continue   # a row cut short (the disk filled up while it was written)
                     if resume_iteration is None or (r and int(float(r[0])) <= resume_iteration):
                         keep.append(r)
-                with open(self.path, "w", newline="") as f:
-                    csv.writer(f).writerows(keep)
+                if len(keep) != len(rows):
+                    atomic_write(self.path, _csv_text(keep))
         if self.columns is None and columns is not None:
             self._start(columns)
         self.tb = None
@@ -114,24 +210,23 @@ class RunLogger:
                 self.tb = SummaryWriter(os.path.join(run_dir, "tb"))
             except Exception:  # noqa: BLE001 - optional dependency
                 self.tb = None
+        self.wandb = None if wandb is None else start_wandb(run_dir, **wandb)
 
     def _start(self, columns: list[str]) -> None:
         self.columns = list(BASE_COLUMNS) + sorted(c for c in columns if c not in BASE_COLUMNS)
-        with open(self.path, "w", newline="") as f:
-            csv.writer(f).writerow(self.columns)
+        atomic_write(self.path, _csv_text([self.columns]))
 
     def _extend(self, new: list[str]) -> None:
         """Add columns (e.g. the first evaluation's) by rewriting the file with a wider header."""
         with open(self.path, newline="") as f:
             rows = list(csv.reader(f))
         old = self.columns
-        self.columns = list(BASE_COLUMNS) + sorted((set(old) | set(new)) - set(BASE_COLUMNS))
+        columns = list(BASE_COLUMNS) + sorted((set(old) | set(new)) - set(BASE_COLUMNS))
         idx = {c: i for i, c in enumerate(old)}
-        with open(self.path, "w", newline="") as f:
-            w = csv.writer(f)
-            w.writerow(self.columns)
-            for r in rows[1:]:
-                w.writerow([r[idx[c]] if c in idx and idx[c] < len(r) else "" for c in self.columns])
+        out = [columns] + [[r[idx[c]] if c in idx and idx[c] < len(r) else "" for c in columns]
+                           for r in rows[1:]]
+        atomic_write(self.path, _csv_text(out))
+        self.columns = columns
 
     def log(self, row: Mapping[str, Any]) -> None:
         if self.columns is None:
@@ -152,12 +247,78 @@ class RunLogger:
                     continue
                 if not math.isnan(fv):
                     self.tb.add_scalar(k, fv, step)
+        if self.wandb is not None:
+            vals = {}
+            for k, v in row.items():
+                try:
+                    fv = float(v)
+                except (TypeError, ValueError):
+                    continue
+                if not math.isnan(fv):
+                    vals[k] = fv
+            self.wandb.log(vals)
 
     def close(self) -> None:
         if self.tb is not None:
-            self.tb.flush()
-            self.tb.close()
+            try:
+                self.tb.flush()
+                self.tb.close()
+            except Exception:  # noqa: BLE001 - never hide the error that ends a run
+                pass
             self.tb = None
+        if self.wandb is not None:
+            try:
+                self.wandb.finish()
+            except Exception:  # noqa: BLE001
+                pass
+            self.wandb = None
+
+
+def wandb_missing_error() -> Optional[str]:
+    """None when wandb imports, else the one-line fix."""
+    try:
+        import wandb  # noqa: F401
+    except ImportError:
+        return ("--wandb needs the wandb package, which is not installed: pip install "
+                "'dscpp_jax[wandb]' (or pip install wandb), or drop --wandb")
+    return None
+
+
+def start_wandb(run_dir: str, project: str = "dscpp_jax", mode: Optional[str] = None,
+                config: Optional[Mapping[str, Any]] = None, name: Optional[str] = None):
+    """A Weights & Biases run logging the same metric names as metrics.csv, against env_steps.
+
+    The wandb run id is kept in RUN_DIR/wandb_run.json, so a resumed run continues the same wandb
+    run. `mode`: online | offline | disabled (default: $WANDB_MODE, else online)."""
+    missing = wandb_missing_error()
+    if missing:
+        raise WandbError(missing)
+    import wandb
+    id_path = os.path.join(run_dir, WANDB_ID_FILE)
+    saved = {}
+    if os.path.exists(id_path):
+        try:
+            with open(id_path) as f:
+                saved = json.load(f)
+        except (OSError, ValueError):
+            saved = {}
+    run_id = saved.get("id") or uuid.uuid4().hex[:12]
+    if saved.get("project"):
+        project = saved["project"]
+    if not saved:
+        atomic_write(id_path, json.dumps({"id": run_id, "project": project}, indent=2))
+    mode = mode or os.environ.get("WANDB_MODE") or "online"
+    try:
+        run = wandb.init(project=project, id=run_id, resume="allow", mode=mode,
+                         name=name or os.path.basename(os.path.normpath(run_dir)),
+                         config=dict(config or {}), dir=os.environ.get("WANDB_DIR") or run_dir)
+    except Exception as e:  # noqa: BLE001 - wandb raises its own types (no login, no network)
+        raise WandbError(f"could not start Weights & Biases in {mode} mode ({type(e).__name__}: "
+                         f"{' '.join(str(e).split())[:300]}): run `wandb login`, or log locally "
+                         f"with --wandb-mode offline (sync later with `wandb sync`)") from None
+    run.define_metric("env_steps")
+    run.define_metric("*", step_metric="env_steps")
+    return run
 
 
 def read_metrics(run_dir: str) -> dict[str, list[float]]:

@@ -47,6 +47,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
 from dscpp_jax import trainer as T
 from dscpp_jax.config import Config
+from envs.goal_env import select_state
 
 SEED_AXIS = "seeds"
 PyTree = Any
@@ -207,22 +208,30 @@ def init_group(seeds: Sequence[int], config: Config, mesh: Optional[Mesh] = None
         raise ValueError(f"seeds {list(seeds)} name a seed more than once")
     mesh = seed_mesh() if mesh is None else mesh
     check_group_size(n, mesh)
-    config = config.validate()
+    # group_size sizes what all seeds of a program share (MuJoCo Warp's contact buffers)
+    config = T.resolve_physics(config.validate()).override(group_size=n)
     T.make_env(config.device_view())   # build the env outside any trace (it is cached)
     one = jax.eval_shape(lambda k: T.init_impl(k, config), jax.random.PRNGKey(0))
-    like = jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct((n,) + x.shape, x.dtype), one)
+    # the group's shapes as vmap makes them: every leaf gets the seed axis, except the buffers
+    # that MuJoCo Warp shares between all worlds of a batch (they stay unbatched)
+    like = jax.eval_shape(jax.vmap(lambda k: T.init_impl(k, config)),
+                          jax.ShapeDtypeStruct((n,) + one.key.shape, one.key.dtype))
+    flat_one = jax.tree_util.tree_leaves(one)
     flat_sh, treedef = jax.tree_util.tree_flatten(group_shardings(like, mesh, n))
     flat_like = jax.tree_util.tree_leaves(like)
+    batched = [x.shape == (n,) + o.shape for x, o in zip(flat_like, flat_one)]
     per_leaf: List[List[Any]] = [[] for _ in flat_like]
-    # every leaf has the seed axis, so every leaf has the same seeds on a device
-    index_map = flat_sh[0].addressable_devices_indices_map(flat_like[0].shape)
+    # every seed-axis leaf has the same seeds on a device (the counters have the seed axis)
+    j0 = batched.index(True)
+    index_map = flat_sh[j0].addressable_devices_indices_map(flat_like[j0].shape)
     for device, index in index_map.items():
         ids = range(n)[index[0]]
         with jax.default_device(device):
             parts = [jax.tree_util.tree_leaves(T.init(jax.random.PRNGKey(seeds[i]), config))
                      for i in ids]
             for j in range(len(flat_like)):
-                per_leaf[j].append(jax.device_put(jnp.stack([p[j] for p in parts]), device))
+                x = jnp.stack([p[j] for p in parts]) if batched[j] else parts[0][j]
+                per_leaf[j].append(jax.device_put(x, device))
         del parts
     leaves = [jax.make_array_from_single_device_arrays(x.shape, s, arrs)
               for x, s, arrs in zip(flat_like, flat_sh, per_leaf)]
@@ -234,17 +243,18 @@ def _group_body(treedef, specs):
 
     def step(states, active):
         def one(state, on):
-            return jax.lax.cond(on, T.train_step_impl, _frozen_step, state)
-        return jax.vmap(one, in_axes=(axes, 0), out_axes=(axes, 0))(states, active)
+            # under vmap a cond on `on` would run both branches anyway: step every seed, keep
+            # the old state of the frozen ones. Work that only some seeds need is skipped when
+            # none needs it (train_step_impl's seed_axis).
+            new, m = T.train_step_impl(state, seed_axis=T.SEED_AXIS)
+            env_state = select_state(on, new.env_state, state.env_state)
+            rest = jax.tree_util.tree_map(lambda a, b: jnp.where(on, a, b),
+                                          new.replace(env_state=None), state.replace(env_state=None))
+            m = {k: jnp.where(on, v, jnp.nan) for k, v in m.items()}
+            return rest.replace(env_state=env_state), m
+        return jax.vmap(one, in_axes=(axes, 0), out_axes=(axes, 0), axis_name=T.SEED_AXIS)(
+            states, active)
     return step
-
-
-def _frozen_step(state: T.TrainState):
-    """`train_step_impl`'s output structure with the state unchanged and NaN metrics (a seed that
-    has finished its schedule while others still train)."""
-    out_state, m = jax.eval_shape(T.train_step_impl, state)
-    del out_state
-    return state, {k: jnp.full(v.shape, jnp.nan, v.dtype) for k, v in m.items()}
 
 
 @functools.lru_cache(maxsize=None)

@@ -260,9 +260,13 @@ def _polyak(tau: float, target: PyTree, online: PyTree) -> PyTree:
 
 
 def td3_update(
-    cfg: TD3Config, state: TD3State, batch: Transition, key: jax.Array
+    cfg: TD3Config, state: TD3State, batch: Transition, key: jax.Array,
+    seed_axis: Optional[str] = None,
 ) -> Tuple[TD3State, Dict[str, jax.Array]]:
-    """One critic step; every ``policy_delay``-th call also an actor step and soft target update."""
+    """One critic step; every ``policy_delay``-th call also an actor step and soft target update.
+
+    ``seed_axis``: the name of an enclosing ``vmap`` axis over independent runs (seeds), if any;
+    the actor step then runs when any run needs it instead of on every call."""
     noise = td3_target_noise(cfg, key, batch.action.shape)
     y = jax.lax.stop_gradient(td3_targets(cfg, state, batch, noise))
 
@@ -296,12 +300,21 @@ def td3_update(
         return operand, jnp.zeros((), critic_loss.dtype)
 
     do_actor = step % cfg.policy_delay == 0
-    (actor_params, actor_opt_state, t_actor, t_critic), actor_loss = jax.lax.cond(
-        do_actor,
-        actor_step,
-        skip,
-        (state.actor_params, state.actor_opt_state, state.target_actor_params, state.target_critic_params),
-    )
+    operand = (state.actor_params, state.actor_opt_state, state.target_actor_params,
+               state.target_critic_params)
+    if seed_axis is None:
+        (actor_params, actor_opt_state, t_actor, t_critic), actor_loss = jax.lax.cond(
+            do_actor, actor_step, skip, operand)
+    else:
+        # vmapped over seeds: a batched predicate would turn the cond into a select that runs
+        # the actor step every time; branch on "any seed updates" and select per seed inside
+        def some(op):
+            new, loss = actor_step(op)
+            return jax.tree_util.tree_map(lambda a, b: jnp.where(do_actor, a, b), (new, loss),
+                                          skip(op))
+        any_actor = jax.lax.psum(do_actor.astype(jnp.int32), seed_axis) > 0
+        (actor_params, actor_opt_state, t_actor, t_critic), actor_loss = jax.lax.cond(
+            any_actor, some, skip, operand)
     new_state = state.replace(
         actor_params=actor_params,
         critic_params=critic_params,
@@ -330,6 +343,7 @@ def td3_updates(
     num_steps: int,
     sample_fn: Callable[[jax.Array, PyTree, int], Transition],
     sample_block: int = 1,
+    seed_axis: Optional[str] = None,
 ) -> Tuple[TD3State, Dict[str, jax.Array]]:
     """``num_steps`` (static) rounds of sample + :func:`td3_update` as one ``lax.scan``.
 
@@ -354,7 +368,7 @@ def td3_updates(
     def body(st, k):
         ks, ku = jax.random.split(k)
         batch = sample_fn(ks, buffer, n)
-        st, m = td3_update(cfg, st, batch, ku)
+        st, m = td3_update(cfg, st, batch, ku, seed_axis)
         return st, m
 
     def block_body(st, k):
@@ -362,7 +376,7 @@ def td3_updates(
         batches = jax.tree_util.tree_map(
             lambda x: x.reshape((sample_block, n) + x.shape[1:]),
             sample_fn(ks, buffer, sample_block * n))
-        return jax.lax.scan(lambda s, bk: td3_update(cfg, s, bk[0], bk[1]), st,
+        return jax.lax.scan(lambda s, bk: td3_update(cfg, s, bk[0], bk[1], seed_axis), st,
                             (batches, jax.random.split(ku, sample_block)))
 
     if sample_block == 1:

@@ -30,6 +30,7 @@ import jax
 import jax.numpy as jnp
 
 from dscpp_jax.config import Config
+from envs.goal_env import select_state, select_states
 from dscpp_jax.replay import Replay, TrajStep, replay_add, replay_flatten, replay_init, replay_sample
 from dscpp_jax.td3 import TD3Config, TD3State, td3_init, td3_explore, td3_act, td3_updates, td3_value, \
     td3_random_prob
@@ -85,12 +86,49 @@ class TrainState:
 # ------------------------------------------------------------------------------------------------
 # Component configs derived from the run config
 # ------------------------------------------------------------------------------------------------
+SEED_AXIS = "runs"
+"""The vmap axis name over the runs of a seed group (see `train_step_impl`'s ``seed_axis``; the
+device mesh's axis is `seed_group.SEED_AXIS`)."""
+
+
+def resolve_physics(config: Config) -> Config:
+    """`config` with ``physics="auto"`` made concrete: MuJoCo Warp on a GPU where `warp-lang` is
+    installed, MJX-JAX elsewhere (point-mass envs: "jax", they have no MuJoCo physics)."""
+    if config.physics != "auto":
+        return config
+    if config.env.startswith("point_"):
+        return config.override(physics="jax")
+    from envs.ant_maze import warp_available
+    use_warp = jax.default_backend() == "gpu" and warp_available()
+    return config.override(physics="warp" if use_warp else "jax")
+
+
+def make_env(config: Config, worlds: Optional[int] = None):
+    """The env of `config`. ``worlds``: the most envs stepped together (all vmapped axes
+    multiplied out); it sizes MuJoCo Warp's shared contact buffers (default: the training batch,
+    ``group_size * num_envs``)."""
+    config = resolve_physics(config)
+    if worlds is None:
+        worlds = config.group_size * config.num_envs
+    return _make_env(config.env, config.episode_length, config.goal_tolerance,
+                     config.ant_integrator, config.physics, int(worlds))
+
+
 @functools.lru_cache(maxsize=None)
-def make_env(config: Config):
+def _make_env(name, episode_length, goal_tolerance, integrator, physics, worlds):
     import envs
-    kw = {} if config.env.startswith("point_") else dict(integrator=config.ant_integrator)
-    return envs.make(config.env, episode_length=config.episode_length,
-                     goal_tolerance=config.goal_tolerance, **kw)
+    # the first call may come from inside a trace (jit/vmap of init_impl): build the env's
+    # constants eagerly so that none of them is a tracer that outlives it
+    with jax.ensure_compile_time_eval():
+        return _build_env(name, episode_length, goal_tolerance, integrator, physics, worlds)
+
+
+def _build_env(name, episode_length, goal_tolerance, integrator, physics, worlds):
+    import envs
+    kw = {} if name.startswith("point_") else dict(
+        integrator=integrator, physics=physics,
+        **({"warp_worlds": worlds} if physics == "warp" else {}))
+    return envs.make(name, episode_length=episode_length, goal_tolerance=goal_tolerance, **kw)
 
 
 def td3_config(config: Config) -> TD3Config:
@@ -100,9 +138,8 @@ def td3_config(config: Config) -> TD3Config:
               replay_capacity=config.replay_capacity,
               actor_lr=config.effective_td3_lr, critic_lr=config.effective_td3_lr,
               action_l2=config.td3_action_l2)
-    if config.td3_clip_targets:   # the value range under the reward (tilt penalty included)
-        worst = 1.0 + config.td3_upright_weight * (1.0 + config.td3_upright_min)
-        kw.update(target_range=(-worst / (1.0 - config.discount), 0.0))
+    if config.td3_clip_targets:   # the value range under the 0 / -1 reward
+        kw.update(target_range=(-1.0 / (1.0 - config.discount), 0.0))
     if config.random_action_prob >= 0:
         kw.update(random_action_prob=config.random_action_prob)
         if config.model_based:
@@ -145,14 +182,21 @@ def init(key: jax.Array, config: Config) -> TrainState:
 
     The state carries `config.device_view()`: host-only fields (seed, schedule length, logging
     cadence) are reset there so that changing them never recompiles `train_step`."""
-    config = config.validate().device_view()
+    if not isinstance(config, Config):
+        raise TypeError(f"init(key, config) needs a dscpp_jax.Config as its second argument (e.g. "
+                        f"dscpp_jax.preset('fast', env='point_u_maze')), got "
+                        f"{type(config).__name__}")
+    if not hasattr(key, "dtype"):
+        raise TypeError(f"init(key, config) needs a PRNG key as its first argument (e.g. "
+                        f"jax.random.PRNGKey(0)), got {type(key).__name__}")
+    config = resolve_physics(config.validate()).device_view()
     make_env(config)  # unknown env names fail here, not inside a trace
     return _init_jit(key, config)
 
 
 def init_impl(key: jax.Array, config: Config) -> TrainState:
     """Un-jitted `init` (for use inside other traced code)."""
-    config = config.device_view()
+    config = resolve_physics(config).device_view()
     env = make_env(config)
     B, od, ad = config.num_envs, env.observation_size, env.action_size
     k_env, k_td3, k_dyn, k_run = jax.random.split(key, 4)
@@ -265,7 +309,20 @@ def _push_traj(ex: ExecState, xy):
 # ------------------------------------------------------------------------------------------------
 # train_step
 # ------------------------------------------------------------------------------------------------
-def _rollout(state: TrainState, key) -> Tuple[TrainState, Dict[str, jax.Array]]:
+def _any_seed(pred, seed_axis):
+    """Scalar bool: `pred` holds in some run of the enclosing seed vmap (itself without one)."""
+    if seed_axis is None:
+        return pred
+    return jax.lax.psum(pred.astype(jnp.int32), seed_axis) > 0
+
+
+def _all_seeds(pred, seed_axis):
+    if seed_axis is None:
+        return pred
+    return ~_any_seed(~pred, seed_axis)
+
+
+def _rollout(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[str, jax.Array]]:
     config = state.config
     env = make_env(config)
     B = config.num_envs
@@ -283,12 +340,16 @@ def _rollout(state: TrainState, key) -> Tuple[TrainState, Dict[str, jax.Array]]:
         xy = obs[:, :2]
         ex = _choose_options(config, env, chain, dp_table, td3, ex, obs, k_opt)
         rand_acts = jax.random.uniform(k_rand, (B, act_dim), jnp.float32, -1.0, 1.0)
+        # under a seed vmap a batched predicate would run the policy (MPC) on every step of
+        # every seed: branch on "all seeds warm up", select per seed inside
         acts = jax.lax.cond(
-            warmup, lambda: rand_acts,
-            lambda: _policy_actions(config, td3, dyn, obs, ex.subgoal, k_act, True, rand_prob))
+            _all_seeds(warmup, seed_axis), lambda: rand_acts,
+            lambda: jnp.where(warmup, rand_acts, _policy_actions(
+                config, td3, dyn, obs, ex.subgoal, k_act, True, rand_prob)))
         nes = jax.vmap(env.step)(es, acts)
         next_xy = nes.obs[:, :2]
         nan = nes.info["nan"] > 0
+        overflow = jnp.any(nes.info["overflow"] > 0)
         ex = _push_traj(ex, next_xy)
         ended, success = _option_end(config, env, chain, ex, next_xy, nes.done)
         # record option outcomes (not during warm-up: random actions say nothing about options)
@@ -307,6 +368,7 @@ def _rollout(state: TrainState, key) -> Tuple[TrainState, Dict[str, jax.Array]]:
         acc["option_events"] = acc["option_events"] + jnp.sum(ended)
         acc["option_successes"] = acc["option_successes"] + jnp.sum(ended & success)
         acc["nan_episodes"] = acc["nan_episodes"] + jnp.sum(nan)
+        acc["overflow_steps"] = acc["overflow_steps"] + overflow.astype(jnp.int32)
         acc["ep_len_sum"] = acc["ep_len_sum"] + jnp.sum(jnp.where(done, nes.info["steps"], 0))
         ex = ex.replace(option=jnp.where(ended, NO_OPTION, ex.option))
 
@@ -317,20 +379,18 @@ def _rollout(state: TrainState, key) -> Tuple[TrainState, Dict[str, jax.Array]]:
                 starts = jax.vmap(env.sample_start)(jax.random.split(k_start, B))
                 fresh_div = jax.vmap(env.reset_at)(ks, starts)
                 fresh_task = jax.vmap(env.reset)(ks)
-                fresh = jax.tree_util.tree_map(lambda a, b: jnp.where(warmup, a, b),
-                                               fresh_task, fresh_div)
+                fresh = select_state(warmup, fresh_task, fresh_div)
             else:
                 fresh = jax.vmap(env.reset)(ks)
-            return jax.tree_util.tree_map(
-                lambda f, n: jnp.where(done.reshape((B,) + (1,) * (n.ndim - 1)), f, n), fresh, nes)
+            return select_states(done, fresh, nes)
 
-        nes = jax.lax.cond(jnp.any(done), reset_all, lambda _: nes, None)
+        nes = jax.lax.cond(_any_seed(jnp.any(done), seed_axis), reset_all, lambda _: nes, None)
         return (nes, ex, chain, replay, model_replay, acc), None
 
     K = config.max_options
     z = jnp.zeros((), jnp.int32)
     acc0 = dict(episodes=z, episode_successes=z, option_events=z, option_successes=z,
-                nan_episodes=z, ep_len_sum=z)
+                nan_episodes=z, ep_len_sum=z, overflow_steps=z)
     carry = (state.env_state, state.exec, state.chain, state.replay, state.model_replay, acc0)
     carry, _ = jax.lax.scan(body, carry, jax.random.split(key, config.steps_per_iter))
     es, ex, chain, replay, model_replay, acc = carry
@@ -354,20 +414,22 @@ def _rollout(state: TrainState, key) -> Tuple[TrainState, Dict[str, jax.Array]]:
                                           acc["option_successes"] / jnp.maximum(acc["option_events"], 1),
                                           jnp.nan),
         "train/nan_physics_steps": acc["nan_episodes"].astype(jnp.float32),
+        "train/physics_overflow_steps": acc["overflow_steps"].astype(jnp.float32),
         "train/warmup": warmup.astype(jnp.float32),
         "train/random_action_prob": rand_prob,
     }
     return state, metrics
 
 
-def _learn(state: TrainState, key) -> Tuple[TrainState, Dict[str, jax.Array]]:
+def _learn(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[str, jax.Array]]:
     config = state.config
     env = make_env(config)
     tcfg = td3_config(config)
     k_td3, k_dyn, k_pre = jax.random.split(key, 3)
     metrics: Dict[str, jax.Array] = {}
     td3, tm = td3_updates(tcfg, state.td3, state.replay, k_td3, config.td3_updates,
-                          td3_sample_fn(config, env), sample_block=config.td3_sample_block)
+                          td3_sample_fn(config, env), sample_block=config.td3_sample_block,
+                          seed_axis=seed_axis)
     metrics.update({f"td3/{k}": v for k, v in tm.items()})
     finite = {"td3": _all_finite(td3)}
     dyn = state.dyn
@@ -379,17 +441,17 @@ def _learn(state: TrainState, key) -> Tuple[TrainState, Dict[str, jax.Array]]:
         # one longer burst once the warm-up data is in (the original's 50 epochs)
         do_pre = (~warmup) & (~counters.warmup_done)
         if config.dyn_pretrain_steps > 0:
-            dyn = jax.lax.cond(
-                do_pre,
-                lambda d: _dynamics_updates(config, d, state.model_replay, k_pre,
-                                                  config.dyn_pretrain_steps)[0],
-                lambda d: d, dyn)
+            def pretrain(d):
+                new = _dynamics_updates(config, d, state.model_replay, k_pre,
+                                        config.dyn_pretrain_steps)[0]
+                return jax.tree_util.tree_map(lambda a, b: jnp.where(do_pre, a, b), new, d)
+            dyn = jax.lax.cond(_any_seed(do_pre, seed_axis), pretrain, lambda d: d, dyn)
         counters = counters.replace(warmup_done=counters.warmup_done | do_pre)
         metrics.update({f"dynamics/{k}": v for k, v in dm.items()})
         finite["dynamics"] = _all_finite(dyn)
     chain, dp_table = state.chain, state.dp_table
     if config.hierarchical:
-        chain = _refit(config, chain)
+        chain = _refit(config, chain, seed_axis)
         chain = _grow_chain(config, chain, jnp.asarray(env.start, jnp.float32))
         if config.subgoal == "dp":
             dp_table = _dp_value_table(config, chain, _value_fn(config, td3))
@@ -408,12 +470,19 @@ def _all_finite(tree) -> jax.Array:
     return jnp.all(jnp.stack(leaves)) if leaves else jnp.ones((), bool)
 
 
-def train_step_impl(state: TrainState) -> Tuple[TrainState, Dict[str, jax.Array]]:
-    """One iteration (un-jitted; use `train_step`)."""
+def train_step_impl(state: TrainState, seed_axis: Optional[str] = None
+                    ) -> Tuple[TrainState, Dict[str, jax.Array]]:
+    """One iteration (un-jitted; use `train_step`).
+
+    ``seed_axis``: when this runs under ``jax.vmap(..., axis_name=seed_axis)`` over independent
+    runs (a seed group), name that axis. Work that only some runs need (MPC during warm-up, resets,
+    the dynamics pre-training burst, classifier refits, delayed actor steps) then runs when any run
+    needs it, instead of on every call as a vmapped ``lax.cond`` would. Results are the same."""
+    _check_state(state)
     key, k_roll, k_learn = jax.random.split(state.key, 3)
     state = state.replace(key=key)
-    state, m_roll = _rollout(state, k_roll)
-    state, m_learn = _learn(state, k_learn)
+    state, m_roll = _rollout(state, k_roll, seed_axis)
+    state, m_learn = _learn(state, k_learn, seed_axis)
     c = state.counters
     metrics = {**m_roll, **m_learn,
                "counters/env_steps": c.env_steps.astype(jnp.float32),
@@ -422,33 +491,46 @@ def train_step_impl(state: TrainState) -> Tuple[TrainState, Dict[str, jax.Array]
     return state, metrics
 
 
-train_step = jax.jit(train_step_impl)
+def _check_state(state) -> None:
+    if not isinstance(state, TrainState):
+        raise TypeError(f"train_step(state) needs the TrainState made by dscpp_jax.init (or "
+                        f"returned by train_step), got {type(state).__name__}")
+
+
+_train_step_jit = jax.jit(train_step_impl)
+
+
+def train_step(state: TrainState) -> Tuple[TrainState, Dict[str, jax.Array]]:
+    """One iteration, jitted (compiles once per Config); a TypeError for anything but a
+    TrainState, before JAX tries to trace it."""
+    _check_state(state)
+    return _train_step_jit(state)
+
+
+for _name in ("lower", "trace", "eval_shape", "_cache_size", "clear_cache"):
+    if hasattr(_train_step_jit, _name):
+        setattr(train_step, _name, getattr(_train_step_jit, _name))
 """Jitted `train_step(state) -> (state, metrics)`; compiles once per Config."""
+
+
+def train_step_group_impl(states: TrainState) -> Tuple[TrainState, Dict[str, jax.Array]]:
+    """`train_step_impl` over a leading seed axis (un-jitted): each run as if alone."""
+    return jax.vmap(functools.partial(train_step_impl, seed_axis=SEED_AXIS),
+                    axis_name=SEED_AXIS)(states)
 
 
 # ------------------------------------------------------------------------------------------------
 # Thin adapters over the component modules (one place to follow their signatures)
 # ------------------------------------------------------------------------------------------------
-def td3_sample_fn(config: Config, env) -> Any:
+def td3_sample_fn(config: Config, env: Any = None) -> Any:
     """``sample_fn(key, replay, n) -> Transition`` for TD3: HER relabelling within an option's
-    segment (the episode's for the flat algorithms), with ``td3_upright_weight`` the ant's tilt
-    charged per step (:func:`dscpp_jax.her.tilt_penalty`), and with ``td3_absorb_fallen`` its
-    falls made absorbing (:func:`dscpp_jax.her.absorb_failures`)."""
+    segment (the episode's for the flat algorithms). ``env`` is unused (kept for callers)."""
     max_seg = config.option_timeout if config.hierarchical else config.episode_length
 
     def sample_fn(k, buf, n):
-        batch = _her_sample(k, buf, n, strategy=config.her_strategy,
-                            relabel_prob=config.her_relabel_prob, max_segment=max_seg,
-                            goal_tolerance=config.goal_tolerance)
-        if config.td3_upright_weight > 0 or config.td3_absorb_fallen:
-            up = env.upright(batch.next_obs)
-        if config.td3_upright_weight > 0:
-            from dscpp_jax.her import tilt_penalty
-            batch = tilt_penalty(batch, up, config.td3_upright_weight, config.td3_upright_min)
-        if config.td3_absorb_fallen:
-            from dscpp_jax.her import absorb_failures
-            batch = absorb_failures(batch, up < 0, config.discount)
-        return batch
+        return _her_sample(k, buf, n, strategy=config.her_strategy,
+                           relabel_prob=config.her_relabel_prob, max_segment=max_seg,
+                           goal_tolerance=config.goal_tolerance)
 
     return sample_fn
 
@@ -489,8 +571,7 @@ def mpc_config(config: Config):
     return MPCConfig(num_samples=config.mpc_samples, horizon=config.mpc_horizon,
                      discount=config.mpc_discount, goal_tolerance=config.goal_tolerance,
                      use_value=config.uses_value_in_mpc, compute_dtype=config.mpc_dtype,
-                     backend=config.mpc_backend, upright_weight=config.mpc_upright_weight,
-                     upright_min=config.mpc_upright_min)
+                     backend=config.mpc_backend)
 
 
 def _mpc_actions(config: Config, dyn, key, obs, goals, value_fn, value_net=None):
@@ -567,9 +648,9 @@ def _record_outcomes(config: Config, chain, ex: ExecState, success, events):
                            events, start_obs=ex.start_obs)
 
 
-def _refit(config: Config, chain):
+def _refit(config: Config, chain, seed_axis=None):
     from dscpp_jax.options import refit
-    return refit(chain)
+    return refit(chain, seed_axis=seed_axis)
 
 
 def _grow_chain(config: Config, chain, start_xy):

@@ -12,6 +12,10 @@ from __future__ import annotations
 
 import dataclasses
 
+from envs._quiet_import import import_quietly
+
+import_quietly("mujoco.mjx")  # first, before brax imports it: no notice about the optional Warp back end
+
 from envs.goals import (EPISODE_LENGTH, GOAL_TOLERANCE, achieved_goal, goal_reached,  # noqa: F401
                         goal_reward)
 from envs.maze_layout import BUILTIN_MAPS, MazeLayout, get_layout, parse_map  # noqa: F401
@@ -36,7 +40,39 @@ def _build(layout: MazeLayout, robot: str, overrides: dict):
     if bad:
         raise ValueError(f"unknown override(s) {bad} for robot {robot!r}; valid: "
                          f"{sorted(fields | {'start_xy', 'goal_xy', 'robot'})}")
+    _check_overrides(cfg_cls, overrides)
     return env_cls(layout, cfg_cls(**overrides))
+
+
+# overrides that must be positive (a zero-length episode or a negative tolerance would compile
+# into an env that never ends or never succeeds)
+_POSITIVE = ("episode_length", "goal_tolerance", "dt", "timestep", "frame_skip", "substeps",
+             "solver_iterations", "ls_iterations")
+
+
+def _check_overrides(cfg_cls, overrides: dict) -> None:
+    """Each override has its field's type (an int where the default is an int, ...) and the
+    lengths, steps and tolerances are positive; a ValueError names the field and an example."""
+    import math
+    import numbers
+    defaults = cfg_cls()
+    for k, v in overrides.items():
+        d = getattr(defaults, k)
+        if isinstance(d, bool):
+            ok = isinstance(v, bool)
+        elif isinstance(d, int):
+            ok = isinstance(v, numbers.Integral) and not isinstance(v, bool)
+        elif isinstance(d, float):
+            ok = isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v)
+        elif isinstance(d, str):
+            ok = isinstance(v, str)
+        else:
+            ok = True
+        if not ok:
+            raise ValueError(f"{cfg_cls.__name__}.{k} must be {type(d).__name__} like its default "
+                             f"{d!r}, got {v!r}")
+        if k in _POSITIVE and not v > 0:
+            raise ValueError(f"{cfg_cls.__name__}.{k} must be > 0, got {v!r} (default {d!r})")
 
 
 def make(name: str, **overrides):

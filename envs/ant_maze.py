@@ -123,8 +123,22 @@ class AntConfig:
     # Wall margin of the diverse-start sampler: the torso keeps 1.0 from walls so the legs
     # (0.9 reach in the rest pose) start clear of them; Ant-Reacher starts span [-9.5, 9.5]^2.
     start_margin: float = 1.0
+    # Physics back end: "jax" (MJX in JAX, differentiable, any platform) or "warp" (MuJoCo Warp
+    # through MJX, needs `warp-lang`; 2-3x faster on GPUs). Warp keeps its contact and
+    # constraint arrays in buffers shared by all worlds of a batch, sized here: `warp_worlds` is
+    # the largest number of envs stepped together (every vmapped axis multiplied out: seeds x
+    # envs), `warp_contacts_per_world` and `warp_constraints_per_world` the room per world.
+    physics: str = "jax"
+    warp_worlds: int = 128
+    warp_contacts_per_world: int = 16
+    warp_constraints_per_world: int = 64
 
     def __post_init__(self):
+        if self.physics not in ("jax", "warp"):
+            raise ValueError(f"physics must be 'jax' or 'warp', got {self.physics!r}")
+        if min(self.warp_worlds, self.warp_contacts_per_world, self.warp_constraints_per_world) < 1:
+            raise ValueError("warp_worlds, warp_contacts_per_world and warp_constraints_per_world "
+                             "must be >= 1")
         if self.integrator not in ("RK4", "Euler", "implicitfast"):
             raise ValueError(f"integrator must be 'RK4', 'Euler' or 'implicitfast', got {self.integrator!r}")
         if self.wall_contacts not in ("torso_knees_feet", "torso_feet", "torso"):
@@ -219,6 +233,37 @@ def ant_mjcf(layout: MazeLayout, cfg: AntConfig = AntConfig()) -> str:
 """
 
 
+# MuJoCo Warp's per-world overflow bits that mean dropped contacts or constraint rows (all but the
+# solver's iteration-limit notes, bits 9 and 10).
+WARP_BUFFER_OVERFLOWS = (1 << 12) - 1 - (1 << 9) - (1 << 10)
+
+
+def warp_available() -> bool:
+    """Whether MuJoCo Warp can run here (`warp-lang` importable by MJX)."""
+    try:
+        from mujoco.mjx import warp as mjx_warp
+    except ImportError:
+        return False
+    return bool(getattr(mjx_warp, "WARP_INSTALLED", False))
+
+
+def _warp_model_and_data(mj_model: mujoco.MjModel, d0: mujoco.MjData, cfg: AntConfig):
+    """MuJoCo Warp model and the data template for `cfg.warp_worlds` worlds (MJX's warp impl)."""
+    if not warp_available():
+        raise ValueError("physics='warp' needs the warp-lang package (pip install -e '.[warp]', "
+                         "or '.[cuda]' on a GPU host); use physics='jax' without it")
+    model = mjx.put_model(mj_model, impl="warp")
+    # Overflows are detected from the data (AntMazeEnv.physics_overflow); the solver's
+    # "iteration limit reached" notes would print on every step of a capped Newton solve.
+    impl = model.opt._impl
+    if hasattr(impl, "warn_overflow"):
+        model = model.replace(opt=model.opt.replace(_impl=impl.replace(warn_overflow=0)))
+    data = mjx.put_data(mj_model, d0, impl="warp",
+                        naconmax=cfg.warp_worlds * cfg.warp_contacts_per_world,
+                        njmax=cfg.warp_constraints_per_world)
+    return model, data
+
+
 def body_points(m: mujoco.MjModel, geom_xpos, geom_xmat, n: int = 5):
     """Points along every ant capsule centre line and every sphere centre (for wall tests).
 
@@ -254,12 +299,29 @@ class AntMazeEnv(GoalMazeEnv):
         self.uses_proxies = use_proxies(layout, config)
         self._wall_grid_np = layout.wall_grid()
         self._wall_grid = jnp.asarray(self._wall_grid_np)
-        self.mjx_model = mjx.put_model(self.mj_model)
         self._init_qpos = jnp.asarray(self.mj_model.qpos0, jnp.float32)
         d0 = mujoco.MjData(self.mj_model)
         self.set_proxies_c(d0)
         mujoco.mj_forward(self.mj_model, d0)
-        self._data0 = mjx.put_data(self.mj_model, d0)
+        if config.physics == "warp":
+            self.mjx_model, self._data0 = _warp_model_and_data(self.mj_model, d0, config)
+        else:
+            self.mjx_model = mjx.put_model(self.mj_model)
+            self._data0 = mjx.put_data(self.mj_model, d0)
+
+    @property
+    def naconmax(self) -> int:
+        """Contacts the Warp buffers hold over all worlds (0 with MJX-JAX: no shared buffer)."""
+        c = self.config
+        return c.warp_worlds * c.warp_contacts_per_world if c.physics == "warp" else 0
+
+    def physics_overflow(self, data) -> jax.Array:
+        """True when the last physics step found more contacts (summed over all worlds) or
+        constraint rows (in this world) than the Warp buffers hold: the excess was dropped. Always
+        False with MJX-JAX."""
+        if self.config.physics != "warp":
+            return jnp.zeros((), bool)
+        return (data._impl.overflow & WARP_BUFFER_OVERFLOWS) != 0
 
     @property
     def dt(self) -> float:
@@ -308,8 +370,13 @@ class AntMazeEnv(GoalMazeEnv):
         prev = state.pipeline_state
         a = jnp.clip(jnp.nan_to_num(jnp.asarray(action, jnp.float32)), -1.0, 1.0)
         data = prev.replace(ctrl=a)
-        data = jax.lax.fori_loop(0, self.config.frame_skip,
-                                 lambda _, d: self._physics_step(d), data)
+        def frame(_, carry):
+            d, over = carry
+            d = self._physics_step(d)
+            return d, over | self.physics_overflow(d)
+
+        data, overflow = jax.lax.fori_loop(0, self.config.frame_skip, frame,
+                                           (data, jnp.zeros((), bool)))
         if self.config.torso_wall_backstop:
             inside = self.layout.in_wall(data.qpos[:2])
             qpos = data.qpos.at[:2].set(jnp.where(inside, prev.qpos[:2], data.qpos[:2]))
@@ -322,7 +389,8 @@ class AntMazeEnv(GoalMazeEnv):
             qpos=jnp.where(nan, prev.qpos, data.qpos), qvel=jnp.where(nan, prev.qvel, data.qvel),
             qacc_warmstart=jnp.where(nan, 0.0, data.qacc_warmstart))
         obs, reward, done, info = goals.finish_step(state.info, obs, state.obs, self.episode_length,
-                                                    self.goal_tolerance, nan=nan)
+                                                    self.goal_tolerance, nan=nan,
+                                                    overflow=overflow)
         return state.replace(pipeline_state=data, obs=obs, reward=reward, done=done, info=info)
 
     def upright(self, obs):

@@ -4,9 +4,31 @@ Subclasses set `observation_size`, `action_size`, `backend` and implement `reset
 `step(state, action)` (brax.envs.base.State in and out); `goals.finish_step` does the reward,
 termination and info bookkeeping of a step.
 """
+import jax
 import jax.numpy as jnp
 
 from envs.maze_layout import MazeLayout
+
+
+def select_state(pred, on_true, on_false):
+    """`on_true` where `pred` else `on_false`, for one env's State (scalar `pred`; vmap it for a
+    batch). MuJoCo Warp data keeps its contact and constraint arrays shared by all worlds, so its
+    physics state merges with `mjx.Data.where`, which leaves those alone; everything else merges
+    leaf by leaf."""
+    def merge(t, f):
+        if hasattr(f, "where") and hasattr(f, "qpos"):   # an mjx.Data
+            return f.where(pred, t)
+        return jax.tree_util.tree_map(lambda a, b: jnp.where(pred, a, b), t, f)
+    ps = merge(on_true.pipeline_state, on_false.pipeline_state)
+    rest = jax.tree_util.tree_map(lambda a, b: jnp.where(pred, a, b),
+                                  on_true.replace(pipeline_state=None),
+                                  on_false.replace(pipeline_state=None))
+    return rest.replace(pipeline_state=ps)
+
+
+def select_states(pred, on_true, on_false):
+    """`select_state` over a batch: `pred` (B,), States with a leading axis B."""
+    return jax.vmap(select_state)(pred, on_true, on_false)
 
 
 class GoalMazeEnv:

@@ -26,14 +26,15 @@ def initial_info(goal, dtype=jnp.float32):
     """The info dict every env starts an episode with (fixed keys so lax.scan carries are stable)."""
     zero = jnp.zeros((), dtype)
     return {"goal": jnp.asarray(goal, dtype), "steps": jnp.zeros((), jnp.int32),
-            "truncation": zero, "success": zero, "nan": zero}
+            "truncation": zero, "success": zero, "nan": zero, "overflow": zero}
 
 
-def finish_step(info, obs, prev_obs, episode_length: int, tol: float, nan=None):
+def finish_step(info, obs, prev_obs, episode_length: int, tol: float, nan=None, overflow=None):
     """Shared step bookkeeping. Returns (obs, reward, done, info).
 
     nan: bool scalar, physics produced non-finite numbers -> obs replaced by `prev_obs`, reward 0,
-    episode ends. done = success | truncation | nan; no auto-reset.
+    episode ends. done = success | truncation | nan; no auto-reset. overflow: bool scalar, the
+    physics dropped contacts or constraints for want of buffer room (recorded in info["overflow"]).
     """
     if nan is None:
         nan = jnp.zeros((), bool)
@@ -44,5 +45,7 @@ def finish_step(info, obs, prev_obs, episode_length: int, tol: float, nan=None):
     reward = jnp.where(nan, 0.0, goal_reward(achieved_goal(obs), info["goal"], tol))
     done = success | truncation | nan
     f = lambda b: b.astype(jnp.float32)
-    info = dict(info, steps=steps, truncation=f(truncation), success=f(success), nan=f(nan))
+    over = jnp.zeros((), bool) if overflow is None else overflow
+    info = dict(info, steps=steps, truncation=f(truncation), success=f(success), nan=f(nan),
+                overflow=f(over))
     return obs, reward.astype(jnp.float32), f(done), info

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import envs
-from envs.ant_maze import body_points
+from envs.ant_maze import body_points, warp_available
 
 B, T = 4, 25  # envs per batch, env steps per rollout (>= 20 for the MJX-vs-C check)
 # Penetration allowed for points on the centre lines of the ant's capsules / sphere centres
@@ -22,13 +22,13 @@ FAST_COMPILE = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive
 
 
 @functools.lru_cache(maxsize=None)
-def get_env(name):
-    return envs.make(name)
+def get_env(name, physics="jax"):
+    return envs.make(name, physics=physics, warp_worlds=B)
 
 
 @functools.lru_cache(maxsize=None)
-def rollout_fn(name):
-    env = get_env(name)
+def rollout_fn(name, physics="jax"):
+    env = get_env(name, physics)
 
     def one(key, xy, vel, actions):
         s = env.reset_at(key, xy)
@@ -39,7 +39,8 @@ def rollout_fn(name):
         def f(s, a):
             s = env.step(s, a)
             d = s.pipeline_state
-            return s, dict(obs=s.obs, reward=s.reward, done=s.done, xpos=d.geom_xpos, xmat=d.geom_xmat)
+            return s, dict(obs=s.obs, reward=s.reward, done=s.done, xpos=d.geom_xpos, xmat=d.geom_xmat,
+                           overflow=s.info["overflow"])
         s1, out = jax.lax.scan(f, s, actions)
         out["qpos0"], out["qvel0"] = d.qpos, s.pipeline_state.qvel
         return out
@@ -47,8 +48,8 @@ def rollout_fn(name):
     return jax.jit(jax.vmap(one), compiler_options=FAST_COMPILE)
 
 
-def rollout(name, key, xy, vel, actions):
-    out = rollout_fn(name)(jax.random.split(key, B), jnp.asarray(xy, jnp.float32),
+def rollout(name, key, xy, vel, actions, physics="jax"):
+    out = rollout_fn(name, physics)(jax.random.split(key, B), jnp.asarray(xy, jnp.float32),
                            jnp.asarray(vel, jnp.float32), jnp.asarray(actions, jnp.float32))
     return jax.tree.map(np.asarray, out)
 
@@ -118,6 +119,45 @@ def test_mjx_matches_mujoco_c():
         close += err[:20].max() < 1e-3
         assert np.max(np.abs(ref[:, 7:15] - ref[0, 7:15])) > 0.2  # the joints did move
     assert close >= B - 1
+
+
+@pytest.mark.skipif(not warp_available(), reason="warp-lang is not installed")
+def test_warp_matches_mujoco_c():
+    """MuJoCo Warp (through MJX) on the same model, initial state and controls tracks MuJoCo C
+    as MJX-JAX does (it runs on the CPU too, slowly), never overflows its contact buffers, and
+    keeps its contact arrays shared by the batch (not batched per env)."""
+    env = get_env("u_maze", "warp")
+    acts = random_actions(1)
+    out = rollout("u_maze", jax.random.key(1), np.zeros((B, 2)), np.zeros((B, 2)), acts, "warp")
+    close = 0
+    for b in range(B):
+        ref = c_rollout(env, out["qpos0"][b], out["qvel0"][b], acts[b])
+        err = np.abs(out["obs"][b] - ref)[:, np.r_[0:3, 7:15]]
+        assert err[:10].max() < 1e-4
+        assert err[:20].max() < 0.05
+        close += err[:20].max() < 1e-3
+    assert close >= B - 2
+    assert not np.any(out["overflow"])
+    s = jax.vmap(env.reset)(jax.random.split(jax.random.key(0), B))
+    assert s.pipeline_state.qpos.shape == (B, 15)
+    assert s.pipeline_state._impl.contact__dist.shape == (env.naconmax,)
+
+
+def test_warp_contact_overflow_is_reported():
+    """Buffers sized for fewer worlds than are stepped: the dropped contacts are reported."""
+    if not warp_available():
+        pytest.skip("warp-lang is not installed")
+    env = envs.make("u_maze", physics="warp", warp_worlds=1, warp_contacts_per_world=1)
+    s = jax.vmap(env.reset)(jax.random.split(jax.random.key(0), B))
+    step = jax.jit(jax.vmap(env.step), compiler_options=FAST_COMPILE)
+    for _ in range(3):   # the ant drops onto its feet: 4 worlds x up to 5 floor contacts
+        s = step(s, jnp.zeros((B, 8)))
+    assert np.all(np.asarray(s.info["overflow"]) == 1.0)
+
+
+def test_physics_choice_is_checked():
+    with pytest.raises(ValueError, match="physics must be"):
+        envs.make("u_maze", physics="bullet")
 
 
 @pytest.mark.parametrize("name", ["u_maze", "four_rooms"])

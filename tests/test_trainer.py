@@ -22,12 +22,6 @@ def test_invalid_configs_fail_before_compiling():
         Config(max_options=2).validate()
     with pytest.raises(ValueError, match="td3_clip_targets needs discount < 1"):
         Config(td3_clip_targets=True, discount=1.0).validate()
-    with pytest.raises(ValueError, match="the point mass has no orientation"):
-        Config(env="point_u_maze", mpc_upright_weight=10.0).validate()
-    with pytest.raises(ValueError, match="the point mass cannot fall"):
-        Config(env="point_u_maze", td3_absorb_fallen=True).validate()
-    with pytest.raises(ValueError, match="the point mass cannot tilt"):
-        Config(env="point_u_maze", td3_upright_weight=1.0).validate()
     with pytest.raises(ValueError, match="td3_action_l2 must be >= 0"):
         Config(td3_action_l2=-0.5).validate()
     with pytest.raises(ValueError, match="td3_sample_block must be >= 1"):
@@ -48,9 +42,6 @@ def test_presets_keep_paper_constants():
     hash(p)  # static jit argument
     assert T.td3_config(p).target_range is None  # the original does not clip TD targets
     assert T.td3_config(p.override(td3_clip_targets=True)).target_range == pytest.approx((-100.0, 0.0))
-    # the tilt penalty widens the clip range to its worst step, -(1 + W (1 + min)) per step
-    tilt = p.override(td3_clip_targets=True, td3_upright_weight=2.0, td3_upright_min=0.5)
-    assert T.td3_config(tilt).target_range == pytest.approx((-400.0, 0.0))
     assert T.td3_config(p.override(td3_action_l2=1.0)).action_l2 == 1.0
     assert T.td3_config(p).action_l2 == 0.0                # off in the paper preset
     assert p.td3_sample_block == 1
@@ -59,9 +50,6 @@ def test_presets_keep_paper_constants():
         f = preset("fast", "four_rooms", algo)
         assert (T.td3_config(f).action_l2, f.td3_sample_block) == (l2, 32), algo
     assert preset("fast", "point_u_maze", "mf_dscpp").td3_action_l2 == 0.0
-    up = T.mpc_config(p.override(mpc_upright_weight=10.0, mpc_upright_min=0.3))
-    assert (up.upright_weight, up.upright_min, up.quat_index) == (10.0, 0.3, 3)
-    assert T.mpc_config(p).upright_weight == 0.0          # off in the paper preset
     # the ant's integrator reaches the MuJoCo model; point-mass envs ignore it
     import mujoco
     assert T.make_env(p).mj_model.opt.integrator == mujoco.mjtIntegrator.mjINT_RK4   # D4RL's
@@ -73,35 +61,13 @@ def test_presets_keep_paper_constants():
     assert T.make_env(preset("fast", "point_u_maze", ant_integrator="RK4")).backend != "mjx"
 
 
-def test_td3_batches_make_the_ants_falls_absorbing_when_asked():
-    from dscpp_jax.replay import TrajStep, replay_add, replay_init
-    cfg = preset("fast", "u_maze", "mf_dscpp", td3_absorb_fallen=True)
-    env = T.make_env(cfg)
-    n_obs, n_act, steps, envs_ = int(env.observation_size), int(env.action_size), 20, 4
-    rng = np.random.default_rng(0)
-    fallen = rng.random((steps, envs_)) < 0.5
-    buf = replay_init(TrajStep(jnp.zeros(n_obs), jnp.zeros(n_act), jnp.zeros(n_obs), jnp.zeros(2),
-                               jnp.zeros((), jnp.int32)), steps * envs_, envs_)
-    for t in range(steps):
-        nxt = np.zeros((envs_, n_obs), np.float32)
-        nxt[:, 0] = 100.0 + t                                   # far from every goal
-        nxt[:, 3:7] = np.where(fallen[t][:, None], [0.0, 1.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0])
-        buf = replay_add(buf, TrajStep(jnp.zeros((envs_, n_obs)), jnp.zeros((envs_, n_act)),
-                                       jnp.asarray(nxt), jnp.zeros((envs_, 2)),
-                                       jnp.zeros(envs_, jnp.int32)))
-    for absorb in (True, False):
-        c = cfg.override(td3_absorb_fallen=absorb, her_relabel_prob=0.0)
-        b = jax.jit(T.td3_sample_fn(c, env), static_argnums=2)(jax.random.key(1), buf, 256)
-        on_back = np.asarray(env.upright(b.next_obs)) < 0
-        assert 0 < on_back.mean() < 1
-        want = np.where(on_back & absorb, -100.0, -1.0)
-        np.testing.assert_allclose(np.asarray(b.reward), want, rtol=1e-6)
-        np.testing.assert_array_equal(np.asarray(b.discount), np.where(on_back & absorb, 0.0, 1.0))
-    # the tilt penalty: upright steps pay -1, steps on the back -1 - W * (min - (-1))
-    c = cfg.override(td3_absorb_fallen=False, her_relabel_prob=0.0, td3_upright_weight=2.0)
-    b = jax.jit(T.td3_sample_fn(c, env), static_argnums=2)(jax.random.key(2), buf, 256)
-    on_back = np.asarray(env.upright(b.next_obs)) < 0
-    np.testing.assert_allclose(np.asarray(b.reward), np.where(on_back, -1.0 - 2.0 * 1.5, -1.0), rtol=1e-6)
+def test_old_run_configs_with_removed_fields_still_load():
+    # config.json of runs made before the upright / absorb switches left Config (off, as saved)
+    cfg = preset("fast", "u_maze", "mf_dscpp", seed=3)
+    old = dict(cfg.to_dict(), td3_upright_weight=0.0, td3_upright_min=0.5, td3_absorb_fallen=False,
+               mpc_upright_weight=0.0, mpc_upright_min=0.5)
+    assert Config.from_dict(old) == cfg
+    assert "td3_absorb_fallen" not in Config().to_dict()
 
 
 def test_no_retracing_across_iterations():
