@@ -131,7 +131,9 @@ def test_group_equals_separate_runs(ref, tmp_path):
     cfg = group_config()
     # the initial states are exactly those of separate runs
     g = SG.init_group([3, 5], cfg)
-    assert_trees_equal(SG.seed_state(g, 1), T.init(jax.random.PRNGKey(5), cfg))
+    # (a group's config records its size, which sizes what its seeds share; nothing else differs)
+    assert SG.seed_state(g, 1).config.group_size == 2
+    assert_trees_equal(SG.seed_state(g, 1), T.init(jax.random.PRNGKey(5), cfg.override(group_size=2)))
     for s in (0, 1):
         single = str(tmp_path / f"single{s}")
         assert main(TRAIN + ["--seed", str(s), "--run-dir", single]) == 0
