@@ -183,8 +183,23 @@ def _spec_key(states: PyTree, n: int):
     return treedef, tuple(leaves)
 
 
+def _vmappable(x: Any) -> bool:
+    """A type that vmap batches as a whole with an int axis (it decides itself which of its fields
+    carry the axis): MuJoCo Warp's Data, whose contact buffers all worlds share."""
+    try:
+        from jax._src.interpreters.batching import vmappables
+    except ImportError:     # pragma: no cover - older or newer JAX without the registry
+        vmappables = {}
+    return type(x) in vmappables
+
+
 def _vmap_axes(treedef, specs) -> PyTree:
-    return jax.tree_util.tree_unflatten(treedef, [0 if s == P(SEED_AXIS) else None for s in specs])
+    """vmap's in_axes/out_axes for a group state: 0 for a seed-axis leaf, None for a shared one,
+    and 0 for a vmappable node as a whole (its own batching rule skips its shared fields)."""
+    spec_tree = jax.tree_util.tree_unflatten(treedef, list(specs))
+    return jax.tree_util.tree_map(
+        lambda s: 0 if _vmappable(s) or s == P(SEED_AXIS) else None, spec_tree,
+        is_leaf=lambda x: _is_spec(x) or _vmappable(x))
 
 
 def _put(states: PyTree, mesh: Mesh, n: int) -> PyTree:
