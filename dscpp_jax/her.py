@@ -56,8 +56,11 @@ def segment_last_offset(buf: Replay, rows: jax.Array, envs: jax.Array, max_segme
         & buf.valid[rr, ee]
         & (offs[None, :] < age[:, None])
     )
-    run = jnp.cumprod(same.astype(jnp.int32), axis=1)  # contiguous prefix of the segment
-    return jnp.maximum(jnp.sum(run, axis=1) - 1, 0)
+    # length of the contiguous prefix of the segment: the first False, or the whole window. (Not
+    # sum(cumprod(same)): XLA lowers that cumprod to a window-W reduce-window, W^2 work per sample,
+    # and fused into the sum under a seed vmap it took XLA's GPU compiler minutes.)
+    run = jnp.where(jnp.all(same, axis=1), window, jnp.argmin(same, axis=1).astype(jnp.int32))
+    return jnp.maximum(run - 1, 0)
 
 
 def her_relabel(

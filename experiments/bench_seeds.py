@@ -40,7 +40,9 @@ def bench_one(cfg, n: int, iters: int) -> dict:
 
     from dscpp_jax import seed_group as SG
     mesh = SG.seed_mesh(jax.local_devices())
-    rec = {"algo": cfg.algo, "N": n, "devices": int(mesh.size)}
+    from dscpp_jax.trainer import resolve_physics
+    rec = {"algo": cfg.algo, "N": n, "devices": int(mesh.size),
+           "physics": resolve_physics(cfg).physics}
     try:
         SG.check_group_size(n, mesh)
         t0 = time.perf_counter()
@@ -116,30 +118,34 @@ def main(argv=None) -> int:
     kw = dict(SMALL) if args.small else {}
     kw.update(_overrides(args.set))
     sizes = [int(x) for x in args.seeds_list.split(",") if x.strip()]
-    records = []
-    for algo in [a.strip() for a in args.algos.split(",") if a.strip()]:
-        cfg = preset(args.preset, args.env, algo, **kw).validate()
-        for n in sizes:
-            rec = bench_one(cfg, n, max(1, args.iters))
-            records.append(rec)
-            print(json.dumps(rec), flush=True)
     dev = jax.local_devices()[0]
     kind = getattr(dev, "device_kind", dev.platform).replace(" ", "_")
     out = args.out or os.path.join(ROOT, "experiments", "results", f"bench_seeds_{kind}.json")
     os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
+    md = os.path.splitext(out)[0] + ".md"
     payload = {"command": " ".join([os.path.basename(sys.executable)] + sys.argv),
                "env": args.env, "preset": args.preset, "small": args.small, "overrides": kw,
                "iters": args.iters, "deterministic_gpu_ops": det,
                "devices": [str(d) for d in jax.local_devices()], "platform": platform.platform(),
-               "versions": library_versions(), "results": records}
-    with open(out, "w") as f:
-        json.dump(payload, f, indent=1)
-    md = os.path.splitext(out)[0] + ".md"
-    text = (f"# Seed groups: {args.env}, preset {args.preset}{' (small)' if args.small else ''}\n\n"
-            f"Devices: {', '.join(payload['devices'])}\n\n{table(records)}\n\n"
-            f"Command: `{payload['command']}`\n")
-    with open(md, "w") as f:
-        f.write(text)
+               "versions": library_versions(), "results": []}
+
+    def write() -> str:   # after every group size: a run cut short keeps what it measured
+        with open(out, "w") as f:
+            json.dump(payload, f, indent=1)
+        text = (f"# Seed groups: {args.env}, preset {args.preset}{' (small)' if args.small else ''}"
+                f"\n\nDevices: {', '.join(payload['devices'])}\n\n{table(payload['results'])}\n\n"
+                f"Command: `{payload['command']}`\n")
+        with open(md, "w") as f:
+            f.write(text)
+        return text
+
+    for algo in [a.strip() for a in args.algos.split(",") if a.strip()]:
+        cfg = preset(args.preset, args.env, algo, **kw).validate()
+        for n in sizes:
+            rec = bench_one(cfg, n, max(1, args.iters))
+            payload["results"].append(rec)
+            print(json.dumps(rec), flush=True)
+            text = write()
     print(text)
     print(f"wrote {out} and {md}")
     return 0
