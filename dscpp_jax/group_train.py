@@ -22,7 +22,7 @@ import os
 import signal
 import sys
 import time
-from typing import Optional, Sequence
+from typing import Dict, Optional, Sequence
 
 import numpy as np
 
@@ -83,15 +83,6 @@ def _agree(flags: np.ndarray) -> np.ndarray:
     return np.asarray(multihost_utils.broadcast_one_to_all(flags))
 
 
-def _abstract_group(cfg: Config, n: int):
-    import jax
-
-    from dscpp_jax import trainer as T
-    T.make_env(cfg.device_view())
-    one = jax.eval_shape(lambda k: T.init_impl(k, cfg), jax.random.PRNGKey(0))
-    return jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct((n,) + x.shape, x.dtype), one)
-
-
 def load_seed(run_dir: str, step: Optional[int] = None):
     """(config, state) of a seed directory of a group: the group checkpoint restored on this
     process's default device, seed taken out (an ordinary single-seed TrainState)."""
@@ -106,7 +97,7 @@ def load_seed(run_dir: str, step: Optional[int] = None):
     group_dir, index = found
     cfg = Config.from_dict(read_config(run_dir)["config"])
     n = len(read_group(group_dir)["seeds"])
-    like = _abstract_group(cfg, n)
+    like = SG.group_shapes(cfg, n)[2]   # as the group was trained (Warp's shared buffers too)
     ck = SG.GroupCheckpointer(group_dir)
     try:
         states = ck.restore(like, SG.seed_mesh(jax.local_devices()[:1]), step)
@@ -216,6 +207,7 @@ def train_group(cfg: Config, seeds: Sequence[int], group_dir: Optional[str] = No
     options = np.full((n,), np.nan)
     saved_iter = start_iter
     group_it = start_iter
+    pending: Dict[int, dict] = {}   # seed index -> its last row, waiting for an evaluation
     try:
         while True:
             active = np.array([not _done(c_, e, p) for c_, e, p in zip(cfgs, env_steps, episodes)])
@@ -246,11 +238,17 @@ def train_group(cfg: Config, seeds: Sequence[int], group_dir: Optional[str] = No
                                           zip(cfgs, env_steps, episodes)])
             its = np.where(active, m["counters/iteration"], iters).astype(int)
             iters = its
-            due = active & (((its % cfg.eval_every == 0) | finished) if cfg.eval_every
-                            else np.zeros((n,), bool))
+            periodic = active & ((its % cfg.eval_every == 0) if cfg.eval_every
+                                 else np.zeros((n,), bool))
+            due = periodic | (finished & bool(cfg.eval_every))
+            # A seed that just finished is frozen, so its evaluation gives the same numbers at any
+            # later point (the key comes from its iteration): evaluate now only when a periodic
+            # evaluation is due anyway, else leave its last row pending until the next evaluation
+            # of the group or the final one, instead of one evaluation per finishing seed.
             ev = None
-            if due.any():
+            if periodic.any():
                 ev, _ = SG.evaluate_group(states, mesh=mesh)
+                _flush_pending(pending, ev, loggers, last_eval)
             if "options/num_options" in m:
                 options = np.where(active, m["options/num_options"], options)
             per_seed_rate = cfg.steps_per_iteration_total / max(dt, 1e-9)
@@ -263,6 +261,9 @@ def train_group(cfg: Config, seeds: Sequence[int], group_dir: Optional[str] = No
                        "time/group_env_steps_per_s": per_seed_rate * int(active.sum())}
                 row.update({k: float(v[i]) for k, v in m.items()
                             if not k.startswith("counters/")})
+                if due[i] and ev is None:
+                    pending[i] = row
+                    continue
                 if due[i]:
                     row.update(ev[i])
                     last_eval[i] = ev[i]["eval/success_rate"]
@@ -275,7 +276,7 @@ def train_group(cfg: Config, seeds: Sequence[int], group_dir: Optional[str] = No
                     last_eval).any() else "nan",
                     eval_min=f"{np.nanmin(last_eval):.2f}" if np.isfinite(last_eval).any() else "nan",
                     options=_range(options), steps_per_s=f"{rate:.0f}", refresh=False)
-            elif lead and due.any():
+            elif lead and ev is not None:
                 print(f"[{time.time() - t_start:7.0f}s] it {group_it} env_steps/seed "
                       f"{int(env_steps.max())} episodes {int(episodes.sum())} eval_success mean "
                       f"{np.nanmean(last_eval):.2f} min {np.nanmin(last_eval):.2f} options "
@@ -295,7 +296,10 @@ def train_group(cfg: Config, seeds: Sequence[int], group_dir: Optional[str] = No
         if stop["flag"]:
             print(f"saved a checkpoint of the group at iteration {group_it}; continue with "
                   f"--resume {group_dir}", file=sys.stderr)
+        summaries, res = SG.evaluate_group(states, num_episodes=cfg.eval_episodes, mesh=mesh)
+        _flush_pending(pending, summaries, loggers, last_eval)
     finally:
+        _flush_pending(pending, None, loggers, last_eval)   # on an error: the rows, no evaluation
         if pbar is not None:
             pbar.close()
         for lg in loggers:
@@ -304,7 +308,6 @@ def train_group(cfg: Config, seeds: Sequence[int], group_dir: Optional[str] = No
         if old_handler is not None:
             signal.signal(signal.SIGINT, old_handler)
 
-    summaries, res = SG.evaluate_group(states, num_episodes=cfg.eval_episodes, mesh=mesh)
     c = SG.to_host(states.counters)               # collectives: every process takes part
     host = SG.to_host(states) if plot else None
     if lead:
@@ -316,6 +319,17 @@ def train_group(cfg: Config, seeds: Sequence[int], group_dir: Optional[str] = No
         if plot:
             _plot_group(group_dir, cfgs, dirs, host, res)
     return states, group_dir, summaries
+
+
+def _flush_pending(pending: Dict[int, dict], ev, loggers, last_eval) -> None:
+    """Log the rows left waiting for an evaluation, with seed i's numbers from `ev[i]`."""
+    for i, row in sorted(pending.items()):
+        if ev is not None:
+            row.update(ev[i])
+            last_eval[i] = ev[i]["eval/success_rate"]
+        if loggers:
+            loggers[i].log(row)
+    pending.clear()
 
 
 def _range(x) -> str:

@@ -213,6 +213,20 @@ def _put(states: PyTree, mesh: Mesh, n: int) -> PyTree:
 # ------------------------------------------------------------------------------------------------
 # init / train_step / evaluate over a group
 # ------------------------------------------------------------------------------------------------
+def group_shapes(config: Config, n: int):
+    """(the group's config, one seed's abstract TrainState, the group's abstract TrainState).
+
+    The group's shapes are those vmap makes: every leaf gets the seed axis, except the buffers
+    that MuJoCo Warp shares between all worlds of a batch (they stay unbatched, sized for the
+    group through `group_size`)."""
+    config = T.resolve_physics(config.validate()).override(group_size=n)
+    T.make_env(config.device_view())   # build the env outside any trace (it is cached)
+    one = jax.eval_shape(lambda k: T.init_impl(k, config), jax.random.PRNGKey(0))
+    like = jax.eval_shape(jax.vmap(lambda k: T.init_impl(k, config)),
+                          jax.ShapeDtypeStruct((n,) + one.key.shape, one.key.dtype))
+    return config, one, like
+
+
 def init_group(seeds: Sequence[int], config: Config, mesh: Optional[Mesh] = None) -> T.TrainState:
     """A group state for `seeds` (leading axis: the seeds, in the order given), sharded over
     `mesh` (default: all devices). Seed ``seeds[i]`` is exactly ``init(PRNGKey(seeds[i]),
@@ -223,14 +237,7 @@ def init_group(seeds: Sequence[int], config: Config, mesh: Optional[Mesh] = None
         raise ValueError(f"seeds {list(seeds)} name a seed more than once")
     mesh = seed_mesh() if mesh is None else mesh
     check_group_size(n, mesh)
-    # group_size sizes what all seeds of a program share (MuJoCo Warp's contact buffers)
-    config = T.resolve_physics(config.validate()).override(group_size=n)
-    T.make_env(config.device_view())   # build the env outside any trace (it is cached)
-    one = jax.eval_shape(lambda k: T.init_impl(k, config), jax.random.PRNGKey(0))
-    # the group's shapes as vmap makes them: every leaf gets the seed axis, except the buffers
-    # that MuJoCo Warp shares between all worlds of a batch (they stay unbatched)
-    like = jax.eval_shape(jax.vmap(lambda k: T.init_impl(k, config)),
-                          jax.ShapeDtypeStruct((n,) + one.key.shape, one.key.dtype))
+    config, one, like = group_shapes(config, n)
     flat_one = jax.tree_util.tree_leaves(one)
     flat_sh, treedef = jax.tree_util.tree_flatten(group_shardings(like, mesh, n))
     flat_like = jax.tree_util.tree_leaves(like)

@@ -343,3 +343,25 @@ def test_warp_physics_group_equals_separate_runs():
     for i, seed in enumerate((0, 1)):
         one, _ = T.train_step(T.init(jax.random.PRNGKey(seed), cfg))
         _compare_states(SG.seed_state(states, i), one, rtol=1e-3)
+
+
+def test_warp_group_seed_directory_evaluates(tmp_path):
+    """A seed directory of a group trained on MuJoCo Warp restores from the group checkpoint (whose
+    contact buffers are shared by the group, not split per seed) and evaluates, as `eval --run
+    GROUP/s1` and `video --run GROUP/s1` do."""
+    from envs.ant_maze import warp_available
+    if not warp_available():
+        pytest.skip("warp-lang is not installed")
+    from dscpp_jax import group_train
+    from dscpp_jax.config import preset
+    from dscpp_jax.evaluate import evaluate
+    cfg = preset("fast", "u_maze", "td3_her", physics="warp", num_envs=2, steps_per_iter=10,
+                 episode_length=20, warmup_episodes=0, td3_hidden=16, td3_batch_size=16,
+                 td3_updates_per_step=0.1, replay_capacity=500, eval_episodes=1, eval_every=0)
+    states, group, _ = group_train.train_group(cfg, [0, 1], str(tmp_path / "g"), progress=False,
+                                               max_iterations=1)
+    got_cfg, one = load_run(os.path.join(group, "s1"))
+    assert got_cfg.seed == 1
+    assert_trees_equal(one.td3, SG.seed_state(states, 1).td3)
+    summary, _ = evaluate(one, jax.random.PRNGKey(0), 1)
+    assert 0.0 <= summary["eval/success_rate"] <= 1.0
