@@ -437,14 +437,34 @@ def write_videos(cfg, state, run_dir: str, out: Optional[str] = None, episodes: 
 
 def cmd_video(args) -> int:
     from dscpp_jax import video
+    if args.record_only and args.from_record:
+        raise ValueError("--record-only rolls out, --from-record draws a recording: give one")
+    opts = _video_options(args)
+    out = args.out or os.path.join(args.run, "videos")
+    if args.record_only:   # roll out here, draw elsewhere: needs neither OpenGL nor ffmpeg
+        video.check_options(**opts)
+        cfg, state = load_run(args.run, args.step)
+        eps, meta = video.record_run(cfg, state, args.episodes, parse_starts(args.starts),
+                                     args.seed, opts["max_steps"])
+        print(f"record: {video.save_record(os.path.join(out, video.RECORD_FILE), eps, meta)}")
+        return 0
     try:
         video.select_gl_backend()   # before JAX starts threads, and before anything compiles
         video.check_encoder()
-        opts = _video_options(args)
         video.check_options(**opts)
     except video.VideoError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    if args.from_record:   # the run's config is all that drawing a recording needs
+        from dscpp_jax.run_logging import load_config
+        path = (os.path.join(args.run, "videos", video.RECORD_FILE)
+                if args.from_record == "-" else args.from_record)
+        eps, meta = video.load_record(path)
+        opts.pop("max_steps")
+        paths = video.render_record(load_config(args.run), eps, meta, out, **opts)
+        for k, p in paths.items():
+            print(f"{k}: {p}")
+        return 0
     cfg, state = load_run(args.run, args.step)
     write_videos(cfg, state, args.run, args.out, args.episodes, parse_starts(args.starts),
                  args.seed, **opts)
@@ -718,6 +738,12 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--seed", type=int, default=0)
     v.add_argument("--step", type=int, default=None, help="checkpoint step (default: the latest)")
     v.add_argument("--out", default=None, help="output directory (default: RUN/videos)")
+    v.add_argument("--record-only", action="store_true",
+                   help="roll out and save the episodes to OUT/episodes.npz without drawing "
+                        "(no OpenGL or ffmpeg needed: e.g. on a GPU training host)")
+    v.add_argument("--from-record", nargs="?", const="-", default=None, metavar="FILE",
+                   help="draw episodes saved by --record-only (default RUN/videos/episodes.npz) "
+                        "with RUN's config; needs no checkpoint")
     _add_video_args(v)
     v.add_argument("--deterministic", action=argparse.BooleanOptionalAction, default=True,
                    help=det_help)

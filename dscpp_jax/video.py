@@ -26,6 +26,11 @@ Rendering back end: `select_gl_backend` keeps a ``MUJOCO_GL`` set by the user, e
 first of EGL and OSMesa that can render (probed in a subprocess), and fails with the Debian
 packages to install when neither can. Encoding: H.264 (yuv420p) through the ffmpeg binary that the
 ``imageio-ffmpeg`` wheel ships (``pip install -e '.[video]'``; `make install` includes it).
+
+Rolling out and drawing can happen on different machines: `record_run` + `save_record` keep the
+episodes (positions, options, subgoals, qpos) in a small ``.npz`` on a host with no OpenGL or
+ffmpeg (a GPU training host, say), and `load_record` + `render_record` draw them elsewhere from
+the run's config alone, without its checkpoint.
 """
 from __future__ import annotations
 
@@ -537,40 +542,86 @@ def rollout(state, key, num_episodes: int = 1, starts=None, max_steps: Optional[
                              num_steps=None if max_steps is None else int(max_steps))
 
 
-def render_run(cfg, state, out_dir: str, episodes: int = 1, starts=None, seed: int = 0,
-               cameras: Iterable[str] = CAMERAS, width: int = 480, height: int = 480,
-               fps: float = 30.0, every: int = 1, max_steps: Optional[int] = None,
-               hold_s: float = 0.5, crf: int = 23) -> Dict[str, str]:
-    """Roll out a run's policy and write the videos and `eval_video.json` under `out_dir`.
+RECORD_FILE = "episodes.npz"
 
-    Returns {camera: path, "summary": path}."""
+
+def save_record(path: str, episodes: Sequence[Episode], meta: dict) -> str:
+    """Write recorded episodes and their run's facts (`meta`: env, algo, iteration, ...) to one
+    ``.npz``: what `render_record` needs to draw them, on this machine or another."""
+    arrays = {"meta": np.array(json.dumps(meta))}
+    for i, ep in enumerate(episodes):
+        arrays[f"e{i}_xy"] = ep.xy
+        arrays[f"e{i}_option"] = ep.option
+        arrays[f"e{i}_subgoal"] = ep.subgoal
+        arrays[f"e{i}_outcome"] = np.array([int(ep.success), ep.steps])
+        if ep.qpos is not None:
+            arrays[f"e{i}_qpos"] = ep.qpos
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    np.savez_compressed(path, **arrays)
+    return path
+
+
+def load_record(path: str) -> Tuple[List[Episode], dict]:
+    """(episodes, meta) written by `save_record`."""
+    try:
+        z = np.load(path, allow_pickle=False)
+        meta = json.loads(str(z["meta"]))
+        n = sum(1 for k in z.files if k.endswith("_outcome"))
+        eps = []
+        for i in range(n):
+            succ, steps = (int(v) for v in z[f"e{i}_outcome"])
+            eps.append(Episode(xy=z[f"e{i}_xy"], option=z[f"e{i}_option"],
+                               subgoal=z[f"e{i}_subgoal"],
+                               qpos=z[f"e{i}_qpos"] if f"e{i}_qpos" in z.files else None,
+                               success=bool(succ), steps=steps))
+    except (OSError, KeyError, ValueError) as e:
+        raise ValueError(f"{path} is not a recording of evaluation episodes ({e}); write one "
+                         f"with `video --run RUN --record-only`") from None
+    if not eps:
+        raise ValueError(f"{path} holds no episodes")
+    return eps, meta
+
+
+def record_run(cfg, state, episodes: int = 1, starts=None, seed: int = 0,
+               max_steps: Optional[int] = None) -> Tuple[List[Episode], dict]:
+    """Roll out a run's policy (no rendering): the episodes and the facts `render_record` needs."""
     import jax
+    res = rollout(state, jax.random.PRNGKey(seed), episodes, starts, max_steps)
+    meta = {"env": cfg.env, "algo": cfg.algo, "iteration": int(state.counters.iteration),
+            "env_steps": int(state.counters.env_steps), "seed": seed,
+            "max_options": int(cfg.max_options)}
+    return episodes_from_result(res), meta
 
+
+def render_record(cfg, episodes: Sequence[Episode], meta: dict, out_dir: str,
+                  cameras: Iterable[str] = CAMERAS, width: int = 480, height: int = 480,
+                  fps: float = 30.0, every: int = 1, hold_s: float = 0.5,
+                  crf: int = 23) -> Dict[str, str]:
+    """Draw recorded episodes of the run configured by `cfg`; write the videos and
+    `eval_video.json` under `out_dir`. Returns {camera: path, "summary": path}."""
     from dscpp_jax import trainer as T
-    check_options(cameras, width, height, fps, every, max_steps, crf)
-    select_gl_backend()   # fail before the rollout compiles when nothing can render
+    check_options(cameras, width, height, fps, every, None, crf)
+    select_gl_backend()
     _ffmpeg()
     env = T.make_env(cfg)
-    res = rollout(state, jax.random.PRNGKey(seed), episodes, starts, max_steps)
-    eps = episodes_from_result(res)
     t0 = time.time()
-    paths = render_episodes(env, eps, out_dir, int(cfg.max_options), cameras, width, height, fps,
-                            every, hold_s, crf)
+    paths = render_episodes(env, episodes, out_dir, int(meta["max_options"]), cameras, width,
+                            height, fps, every, hold_s, crf)
     render_s = time.time() - t0
-    colors = option_colors(int(cfg.max_options))
+    colors = option_colors(int(meta["max_options"]))
     hold = int(round(hold_s * fps))
-    used = sorted({int(o) for ep in eps for o in ep.option})
+    used = sorted({int(o) for ep in episodes for o in ep.option})
     frame0 = 0
     ep_info = []
-    for ep in eps:
+    for ep in episodes:
         n = len(frame_indices(ep.steps, every)) + hold
-        ep_info.append({"start_xy": [float(v) for v in ep.xy[0]], "success": ep.success,
-                        "steps": ep.steps, "first_frame": frame0, "frames": n,
+        ep_info.append({"start_xy": [float(v) for v in ep.xy[0]], "success": bool(ep.success),
+                        "steps": int(ep.steps), "first_frame": frame0, "frames": n,
                         "options": sorted({int(o) for o in ep.option})})
         frame0 += n
     summary = {
-        "env": cfg.env, "algo": cfg.algo, "iteration": int(state.counters.iteration),
-        "env_steps": int(state.counters.env_steps), "seed": seed, "gl_backend": select_gl_backend(),
+        "env": meta["env"], "algo": meta["algo"], "iteration": meta["iteration"],
+        "env_steps": meta["env_steps"], "seed": meta["seed"], "gl_backend": select_gl_backend(),
         "fps": fps, "every": every, "width": width, "height": height, "frames": frame0,
         "files": {c: os.path.basename(p) for c, p in paths.items()}, "episodes": ep_info,
         "option_colors": {str(k): _hex(colors[k]) for k in used},
@@ -580,6 +631,20 @@ def render_run(cfg, state, out_dir: str, episodes: int = 1, starts=None, seed: i
     with open(spath, "w") as f:
         json.dump(summary, f, indent=2)
     return dict(paths, summary=spath)
+
+
+def render_run(cfg, state, out_dir: str, episodes: int = 1, starts=None, seed: int = 0,
+               cameras: Iterable[str] = CAMERAS, width: int = 480, height: int = 480,
+               fps: float = 30.0, every: int = 1, max_steps: Optional[int] = None,
+               hold_s: float = 0.5, crf: int = 23) -> Dict[str, str]:
+    """Roll out a run's policy and write the videos and `eval_video.json` under `out_dir`.
+
+    Returns {camera: path, "summary": path}."""
+    check_options(cameras, width, height, fps, every, max_steps, crf)
+    select_gl_backend()   # fail before the rollout compiles when nothing can render
+    _ffmpeg()
+    eps, meta = record_run(cfg, state, episodes, starts, seed, max_steps)
+    return render_record(cfg, eps, meta, out_dir, cameras, width, height, fps, every, hold_s, crf)
 
 
 def _hex(rgba) -> str:

@@ -87,6 +87,36 @@ def test_point_run_video_from_the_command_line(tmp_path, gl):
     assert (ep.option == 0).all()   # the flat agent runs the global option throughout
 
 
+def test_record_here_render_elsewhere_equals_direct_render(tmp_path, gl):
+    """`video --record-only` (no GL, no ffmpeg) then `video --from-record` on a copy of the run
+    holding only its config draws the same frames as `video` straight from the checkpoint."""
+    cfg = tiny("td3_her")
+    run = str(tmp_path / "run")
+    os.makedirs(run)
+    write_config(run, cfg.to_dict())
+    ck.save_state(run, 0, T.init(jax.random.PRNGKey(0), cfg))
+    common = ["--episodes", "2", "--max-steps", "5", "--width", "64", "--height", "48",
+              "--camera", "topdown", "--compile-cache", "off"]
+    assert main(["video", "--run", run, "--out", str(tmp_path / "direct")] + common) == 0
+    assert main(["video", "--run", run, "--record-only"] + common) == 0
+    rec = os.path.join(run, "videos", video.RECORD_FILE)
+    eps, meta = video.load_record(rec)
+    assert len(eps) == 2 and meta["env"] == cfg.env and meta["max_options"] == cfg.max_options
+    assert not os.path.exists(os.path.join(run, "videos", "eval_topdown.mp4"))
+    elsewhere = str(tmp_path / "elsewhere")   # the config alone: no checkpoint to load
+    os.makedirs(elsewhere)
+    write_config(elsewhere, cfg.to_dict())
+    assert main(["video", "--run", elsewhere, "--from-record", rec] + common) == 0
+    a, _ = video.read_mp4(str(tmp_path / "direct" / "eval_topdown.mp4"))
+    b, _ = video.read_mp4(os.path.join(elsewhere, "videos", "eval_topdown.mp4"))
+    np.testing.assert_array_equal(a, b)
+    d1 = json.load(open(tmp_path / "direct" / "eval_video.json"))
+    d2 = json.load(open(os.path.join(elsewhere, "videos", "eval_video.json")))
+    assert d1["episodes"] == d2["episodes"] and d1["frames"] == d2["frames"]
+    with pytest.raises(ValueError, match="not a recording"):
+        video.load_record(os.path.join(run, "config.json"))
+
+
 def test_ant_video_draws_the_maze_goal_and_option_colour(tmp_path, gl):
     import mujoco
 
