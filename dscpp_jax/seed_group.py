@@ -47,7 +47,6 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
 from dscpp_jax import trainer as T
 from dscpp_jax.config import Config
-from envs.goal_env import select_state
 
 SEED_AXIS = "seeds"
 PyTree = Any
@@ -262,11 +261,8 @@ def _group_body(treedef, specs):
             # the old state of the frozen ones. Work that only some seeds need is skipped when
             # none needs it (train_step_impl's seed_axis).
             new, m = T.train_step_impl(state, seed_axis=T.SEED_AXIS)
-            env_state = select_state(on, new.env_state, state.env_state)
-            rest = jax.tree_util.tree_map(lambda a, b: jnp.where(on, a, b),
-                                          new.replace(env_state=None), state.replace(env_state=None))
             m = {k: jnp.where(on, v, jnp.nan) for k, v in m.items()}
-            return rest.replace(env_state=env_state), m
+            return T.select_train_state(on, new, state), m
         return jax.vmap(one, in_axes=(axes, 0), out_axes=(axes, 0), axis_name=T.SEED_AXIS)(
             states, active)
     return step

@@ -1,0 +1,183 @@
+"""In-band evaluation (`Config.inband_eval_envs`): evaluation episodes stepped inside
+`train_step` never touch learning state, report what `evaluate` reports for the same policy,
+checkpoint and resume exactly, work in seed groups, and compile once."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from dscpp_jax import checkpoint as ck
+from dscpp_jax import trainer as T
+from dscpp_jax.config import Config
+from dscpp_jax.evaluate import evaluate_episodes
+from tests.trainer_fixtures import assert_trees_equal, tiny
+
+E = 3
+ITERS = 7   # 4 envs x 20 steps, 100-step episodes: warm-up ends in iteration 5
+
+
+def _run(cfg, iters, seed=0):
+    s = T.init(jax.random.PRNGKey(seed), cfg)
+    ms, sizes = [], []
+    for _ in range(iters):
+        s, m = T.train_step(s)
+        ms.append(jax.device_get(m))
+        sizes.append(T.train_step._cache_size())
+    return s, ms, sizes
+
+
+@pytest.fixture(scope="module")
+def mb_runs():
+    """mb_dscpp (options, subgoals, MPC with random samples) without and with in-band envs."""
+    cfg = tiny("mb_dscpp")
+    off = _run(cfg, ITERS)
+    on = _run(cfg.override(inband_eval_envs=E), ITERS)
+    return cfg, off, on
+
+
+def test_config_field_is_validated():
+    with pytest.raises(ValueError, match="inband_eval_envs=-1 must be >= 0"):
+        Config(inband_eval_envs=-1).validate()
+    with pytest.raises(ValueError, match="inband_eval_window=-2 must be >= 0"):
+        Config(inband_eval_window=-2).validate()
+    assert Config(inband_eval_envs=8).inband_window == 8
+    assert Config(inband_eval_envs=8, inband_eval_window=32).inband_window == 32
+
+
+def test_inband_never_touches_learning_state(mb_runs):
+    """Same seed with and without in-band envs: every leaf of the learning state (env states,
+    option executions, chain and classifiers, TD3, dynamics, replay buffers, DP table, counters,
+    the PRNG key) and every training metric are bitwise equal."""
+    cfg, (s_off, m_off, _), (s_on, m_on, _) = mb_runs
+    assert s_off.inband is None and s_on.inband is not None
+    assert_trees_equal(s_off, s_on.replace(inband=None, config=s_off.config))
+    assert float(m_on[-1]["train/warmup"]) == 0.0 and float(m_on[-1]["td3/critic_loss"]) != 0.0
+    for a, b in zip(m_off, m_on):
+        assert set(b) - set(a) == {"inband/success_rate", "inband/steps_to_goal",
+                                   "inband/episodes", "inband/window"}
+        for k in a:
+            np.testing.assert_array_equal(np.asarray(a[k]), np.asarray(b[k]), err_msg=k)
+        for k in ("inband/success_rate", "inband/steps_to_goal", "inband/episodes"):
+            assert np.isfinite(b[k]), k
+    ib = s_on.inband
+    steps = cfg.steps_per_iter * ITERS
+    assert int(ib.t) == steps
+    assert int(ib.episodes) >= E * (steps // cfg.episode_length)   # episodes end by the limit
+    assert float(m_on[-1]["inband/episodes"]) == int(ib.episodes)
+
+
+def test_no_retracing_with_inband(mb_runs):
+    _, _, (_, _, sizes) = mb_runs
+    assert sizes[1:] == [sizes[0]] * (len(sizes) - 1)   # warm-up ends, episodes restart
+
+
+def test_metrics_convention_before_and_after_episodes():
+    cfg = tiny("td3_her", inband_eval_envs=2, inband_eval_window=3)
+    ib = T.inband_init(jax.random.PRNGKey(0), cfg)
+    m = T.inband_metrics(cfg, ib)
+    assert {k: float(v) for k, v in m.items()} == {
+        "inband/success_rate": 0.0, "inband/steps_to_goal": float(cfg.episode_length),
+        "inband/episodes": 0.0, "inband/window": 0.0}
+    # a ring of 3 after 5 episodes holds the last 3 (slots 0, 1 rewritten by episodes 4, 5)
+    ib = ib.replace(success=jnp.array([True, False, True]), steps=jnp.array([10, 100, 30]),
+                    episodes=jnp.asarray(5, jnp.int32))
+    m = {k: float(v) for k, v in T.inband_metrics(cfg, ib).items()}
+    assert m == {"inband/success_rate": pytest.approx(2 / 3), "inband/steps_to_goal": 20.0,
+                 "inband/episodes": 5.0, "inband/window": 3.0}
+
+
+def test_inband_steps_follow_evaluate_inside_train_step(mb_runs):
+    """A learned state (past warm-up, a grown chain) with its in-band envs restarted at the task
+    start with key k: the in-band envs of the next train_step move exactly as the episodes of
+    `evaluate_episodes(state, k, E)` (same resets, same option and subgoal keys, same MPC samples:
+    in-band step t acts with fold_in(k_run, t) as evaluation's step t does), since they act with
+    the policy of the iteration's start."""
+    cfg, _, (s_on, _, _) = mb_runs
+    k = jax.random.PRNGKey(42)
+    s = s_on.replace(inband=T.inband_init(k, s_on.config))
+    res = evaluate_episodes(s, k, E)
+    s2, m = T.train_step(s)          # the program compiled for the fixture
+    ib, T_ = s2.inband, cfg.steps_per_iter
+    assert np.all(np.asarray(res.steps) > T_) and int(ib.episodes) == 0
+    np.testing.assert_array_equal(np.asarray(ib.env_state.obs[:, :2]), np.asarray(res.xy[T_]))
+    np.testing.assert_array_equal(np.asarray(ib.ep_steps), T_)
+    # learning went on as without in-band envs
+    s_plain, _ = T.train_step(s.replace(inband=None, config=s_on.config.override(
+        inband_eval_envs=0).device_view()))
+    assert_trees_equal(s_plain.td3, s2.td3)
+
+
+def test_inband_episodes_equal_evaluate_episodes(mb_runs):
+    """The in-band act / step / record functions scanned over one episode length on a fixed state
+    reproduce `_eval_impl`'s episodes: positions step by step until each ends, then its success
+    and length; the ring and metrics hold the finished episodes in order of finishing. A wide goal
+    tolerance makes some episodes succeed, at different lengths, and restart."""
+    _, _, (s_on, _, _) = mb_runs
+    cfg = s_on.config.override(goal_tolerance=7.0, inband_eval_envs=6, inband_eval_window=4)
+    s = s_on.replace(config=cfg)
+    env = T.inband_env(cfg)
+    k = jax.random.PRNGKey(7)
+    n = cfg.inband_eval_envs
+    res = evaluate_episodes(s, k, n)
+
+    @jax.jit
+    def roll(ib):
+        def body(ib, _):
+            ex, acts = T._inband_act(cfg, env, s.chain, s.dp_table, s.td3, s.dyn, ib)
+            nes = jax.vmap(env.step)(ib.env_state, acts)
+            out = (nes.obs[:, :2], nes.done > 0, nes.info["success"] > 0)
+            return T._inband_record(cfg, env, s.chain, ib, ex, nes), out
+        return jax.lax.scan(body, ib, None, length=cfg.episode_length)
+
+    ib, (xy, done, succ) = jax.device_get(roll(T.inband_init(k, cfg)))
+    steps, success = np.asarray(res.steps), np.asarray(res.success)
+    assert success.any() and not success.all() and len(set(steps[success])) > 1
+    for i in range(n):
+        L = steps[i]
+        np.testing.assert_array_equal(xy[:L, i], np.asarray(res.xy)[1:L + 1, i])
+        assert done[L - 1, i] and not done[:L - 1, i].any()
+        assert succ[L - 1, i] == success[i]
+    # every finished episode, in order of finishing (step, then env): its success and length
+    fin, start = [], np.zeros(n, int)
+    for t in range(cfg.episode_length):
+        for i in np.flatnonzero(done[t]):
+            fin.append((succ[t, i], t + 1 - start[i]))
+            start[i] = t + 1
+    assert int(ib.episodes) == len(fin) >= n
+    last = fin[-cfg.inband_window:]
+    m = T.inband_metrics(cfg, ib)
+    assert float(m["inband/success_rate"]) == pytest.approx(np.mean([a for a, _ in last]))
+    assert sorted(zip(np.asarray(ib.success).tolist(), np.asarray(ib.steps).tolist())) == \
+        sorted((bool(a), int(b)) for a, b in last)
+
+
+def test_checkpoint_resume_continues_exactly(tmp_path):
+    cfg = tiny("td3_her", inband_eval_envs=E, inband_eval_window=5, steps_per_iter=40)
+    s = T.init(jax.random.PRNGKey(3), cfg)
+    for _ in range(2):
+        s, _ = T.train_step(s)
+    ck.save_state(str(tmp_path), 2, s)
+    a = s
+    for _ in range(3):
+        a, ma = T.train_step(a)
+    like = T.init(jax.random.PRNGKey(99), cfg)
+    b = ck.restore_state(str(tmp_path), like)
+    assert_trees_equal(b, s)
+    for _ in range(3):
+        b, mb = T.train_step(b)
+    assert_trees_equal(a, b)
+    assert int(a.inband.episodes) > 0
+    for k in ma:
+        np.testing.assert_array_equal(np.asarray(ma[k]), np.asarray(mb[k]), err_msg=k)
+
+
+def test_state_without_inband_has_the_leaves_of_before():
+    """Off, the TrainState's `inband` is None: no leaf, so checkpoints keep their layout."""
+    cfg = tiny("td3_her")
+    shapes = jax.eval_shape(lambda k: T.init_impl(k, cfg), jax.random.PRNGKey(0))
+    assert shapes.inband is None
+    paths = [jax.tree_util.keystr(p) for p, _ in jax.tree_util.tree_flatten_with_path(shapes)[0]]
+    assert not any("inband" in p for p in paths)
+    on = jax.eval_shape(lambda k: T.init_impl(k, cfg.override(inband_eval_envs=2)),
+                        jax.random.PRNGKey(0))
+    assert on.inband.success.shape == (2,) and on.inband.env_state.obs.shape[0] == 2
