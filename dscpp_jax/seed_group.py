@@ -419,8 +419,9 @@ class GroupCheckpointer:
         self.manager = ocp.CheckpointManager(self.directory, options=opts)
 
     def save(self, step: int, states: PyTree) -> None:
+        from dscpp_jax.checkpoint import as_stored
         storable = jax.tree_util.tree_map(
-            lambda x: np.zeros((1,), x.dtype) if _empty(x) else x, states)
+            lambda x: np.zeros((1,), x.dtype) if _empty(x) else x, as_stored(states))
         self.manager.save(int(step), args=self._ocp.args.StandardSave(storable), force=True)
         self.manager.wait_until_finished()
 
@@ -437,7 +438,10 @@ class GroupCheckpointer:
         n = group_size(like)
         mesh = (mesh_of(like) if hasattr(like.counters.iteration, "sharding") else seed_mesh()) \
             if mesh is None else mesh
-        shardings = group_shardings(like, mesh, n)
+        from dscpp_jax.checkpoint import as_stored, from_stored
+        full_like = like
+        like = as_stored(like)
+        shardings = as_stored(group_shardings(full_like, mesh, n))
         abstract = jax.tree_util.tree_map(
             lambda x, s: np.zeros((1,), x.dtype) if _empty(x)
             else jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=s), like, shardings)
@@ -447,7 +451,7 @@ class GroupCheckpointer:
             if _empty(l):
                 return jax.jit(lambda: jnp.zeros(l.shape, l.dtype), out_shardings=s)()
             return x
-        return jax.tree_util.tree_map(back, stored, like, shardings)
+        return from_stored(jax.tree_util.tree_map(back, stored, like, shardings), full_like)
 
     def close(self) -> None:
         self.manager.wait_until_finished()
