@@ -19,6 +19,12 @@ Per environment step:
 4. option outcomes are recorded in the chain (positives: start + last `buffer_len` positions;
    negatives: the start); transitions go to the HER replay (and the model replay);
 5. finished episodes restart, from a diverse start once warm-up is over.
+
+In-band evaluation (`Config.inband_eval_envs` = E > 0): E more environments run evaluation
+episodes from the task start in the same scan, stepped in one physics batch of B + E with the
+training environments (on MuJoCo Warp, by a second vmapped step). They act with `evaluate`'s
+deterministic policy, as of the iteration's start, and write only `TrainState.inband` (their env
+and option state, and a ring of the last finished outcomes); metrics `inband/*`.
 """
 from __future__ import annotations
 
