@@ -116,6 +116,12 @@ class Config:
                                        # learning state (0: off; metrics inband/*)
     inband_eval_window: int = 0        # inband/success_rate over the last K finished in-band
                                        # episodes (0: K = inband_eval_envs)
+    inband_eval_batched: bool = True   # step the in-band envs in one physics batch with the
+                                       # training envs (B + E); False: a second physics step.
+                                       # MJX (JAX) ant physics may round a B + E batch
+                                       # differently, so training then matches a run without
+                                       # in-band envs only to rounding; False keeps it bitwise.
+                                       # Point mass: exact either way; Warp: always a second step
 
     # --- evaluation, logging, checkpoints (host side) -----------------------------------------
     eval_every: int = 10               # train_step calls between evaluations (0: never)

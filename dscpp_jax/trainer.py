@@ -22,7 +22,8 @@ Per environment step:
 
 In-band evaluation (`Config.inband_eval_envs` = E > 0): E more environments run evaluation
 episodes from the task start in the same scan, stepped in one physics batch of B + E with the
-training environments (on MuJoCo Warp, by a second vmapped step). They act with `evaluate`'s
+training environments (with `inband_eval_batched` off, and on MuJoCo Warp, by a second vmapped
+step). They act with `evaluate`'s
 deterministic policy, as of the iteration's start, and write only `TrainState.inband` (their env
 and option state, and a ring of the last finished outcomes); metrics `inband/*`.
 """
@@ -157,10 +158,11 @@ def _build_env(name, episode_length, goal_tolerance, integrator, physics, worlds
 
 def inband_batched(config: Config) -> bool:
     """Whether the in-band envs step in one batch with the training envs (one env step over
-    B + E). MuJoCo Warp's Data keeps contact buffers shared by all worlds of a batch, which two
-    batches cannot be concatenated into: there the in-band envs take a second vmapped step, on an
-    env whose buffers are sized for them."""
-    return resolve_physics(config).physics != "warp"
+    B + E): `Config.inband_eval_batched`, except on MuJoCo Warp, whose Data keeps contact buffers
+    shared by all worlds of a batch, which two batches cannot be concatenated into; there (and
+    with the option off) the in-band envs take a second vmapped step, on an env whose buffers are
+    sized for them."""
+    return config.inband_eval_batched and resolve_physics(config).physics != "warp"
 
 
 def inband_env(config: Config):

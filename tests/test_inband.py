@@ -267,3 +267,19 @@ def test_cli_logs_inband_metrics(tmp_path, capsys):
         g = read_metrics(f"{group}/s{s}")
         assert g["inband/episodes"] == [0.0, 0.0, 2.0]
     assert "inband_success mean" in capsys.readouterr().out
+
+
+def test_second_physics_step_path_equals_the_batched_one():
+    """`inband_eval_batched=False` (the path MuJoCo Warp always takes): the in-band envs step
+    separately; learning state is bitwise that of a run without them, and on the point mass (whose
+    step is per env) the in-band state is that of the batched path."""
+    cfg = tiny("td3_her", steps_per_iter=40)
+    off, _, _ = _run(cfg, 3)
+    sep, m_sep, _ = _run(cfg.override(inband_eval_envs=E, inband_eval_batched=False), 3)
+    bat, m_bat, _ = _run(cfg.override(inband_eval_envs=E), 3)
+    assert not T.inband_batched(sep.config) and T.inband_batched(bat.config)
+    assert_trees_equal(off, sep.replace(inband=None, config=off.config))
+    assert_trees_equal(sep.inband, bat.inband)
+    assert int(sep.inband.episodes) > 0
+    for k in m_bat[-1]:
+        np.testing.assert_array_equal(np.asarray(m_sep[-1][k]), np.asarray(m_bat[-1][k]), err_msg=k)
