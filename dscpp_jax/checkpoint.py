@@ -11,6 +11,7 @@ the newest one that restores, with a warning on stderr naming both steps.
 """
 from __future__ import annotations
 
+import dataclasses
 import os
 import shutil
 import sys
@@ -60,8 +61,30 @@ def from_storable(stored: Any, like: Any) -> Any:
     return jax.tree_util.tree_map(back, stored, like)
 
 
+OPTIONAL_FIELDS = ("inband",)
+"""TrainState fields that are None unless a feature is on (in-band evaluation)."""
+
+
+def as_stored(tree: Any) -> Any:
+    """The tree orbax writes: a TrainState as a dict of its array fields, an optional field left
+    out where it is None, so that a state without the feature has the layout of checkpoints
+    written before the field existed (and restores them). Any other tree as it is."""
+    if dataclasses.is_dataclass(tree) and not isinstance(tree, type) and hasattr(tree, "counters"):
+        return {f.name: getattr(tree, f.name) for f in dataclasses.fields(tree)
+                if f.metadata.get("pytree_node", True)
+                and not (f.name in OPTIONAL_FIELDS and getattr(tree, f.name) is None)}
+    return tree
+
+
+def from_stored(stored: Any, like: Any) -> Any:
+    """Inverse of `as_stored`: `like` with the restored fields."""
+    if isinstance(stored, dict) and not isinstance(like, dict):
+        return like.replace(**stored)
+    return stored
+
+
 def _abstract(tree: Any) -> Any:
-    return jax.eval_shape(to_storable, tree)
+    return jax.eval_shape(lambda t: as_stored(to_storable(t)), tree)
 
 
 class CheckpointError(ValueError):
@@ -105,7 +128,8 @@ class Checkpointer:
         if step in self.all_steps():
             return
         try:
-            self.manager.save(step, args=ocp.args.StandardSave(to_storable(state)), force=force)
+            self.manager.save(step, args=ocp.args.StandardSave(as_stored(to_storable(state))),
+                              force=force)
             self.manager.wait_until_finished()
         except Exception as e:  # noqa: BLE001 - orbax / tensorstore wrap OSErrors in many types
             from dscpp_jax.run_logging import os_error_fix
@@ -197,7 +221,7 @@ class Checkpointer:
         # uncommitted default-device arrays, like the outputs of `init` and `train_step`, so the
         # next call of a jitted function hits its compilation cache
         stored = jax.tree_util.tree_map(lambda x: jnp.asarray(np.asarray(x)), stored)
-        return from_storable(stored, like)
+        return from_stored(from_storable(stored, as_stored(like)), like)
 
     def close(self) -> None:
         try:

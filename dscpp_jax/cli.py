@@ -266,15 +266,21 @@ def train(cfg: Optional[Config] = None, run_dir: Optional[str] = None, resume: b
                 if pbar is None:
                     print(f"[{row['wall_clock']:7.0f}s] it {it} env_steps {int(row['env_steps'])} "
                           f"episodes {int(row['episodes'])} eval_success {last_eval:.2f} "
-                          f"steps_to_goal {ev['eval/steps_to_goal']:.0f} options "
+                          f"steps_to_goal {ev['eval/steps_to_goal']:.0f}{_inband_text(m)} options "
                           f"{int(m.get('options/num_options', 1))} train_success "
                           f"{m.get('train/episode_success', float('nan')):.2f} "
                           f"steps/s {row['time/env_steps_per_s']:.0f}", flush=True)
+            elif pbar is None and "inband/success_rate" in m and it % INBAND_LINE_EVERY == 0:
+                print(f"[{row['wall_clock']:7.0f}s] it {it} env_steps {int(row['env_steps'])} "
+                      f"episodes {int(row['episodes'])}{_inband_text(m)} options "
+                      f"{int(m.get('options/num_options', 1))} "
+                      f"steps/s {row['time/env_steps_per_s']:.0f}", flush=True)
             logger.log(row)
             if pbar is not None:
                 pbar.update(int(m["counters/env_steps"]) - pbar.n)
+                inband = {"inband_success": _inband_rate(m)} if "inband/success_rate" in m else {}
                 pbar.set_postfix(episodes=int(m["counters/episodes"]),
-                                 eval_success=f"{last_eval:.2f}",
+                                 eval_success=f"{last_eval:.2f}", **inband,
                                  options=int(m.get("options/num_options", 1)),
                                  steps_per_s=f"{row['time/env_steps_per_s']:.0f}", refresh=False)
             if cfg.checkpoint_every and it % cfg.checkpoint_every == 0:
@@ -320,6 +326,21 @@ def _write_error(run_dir: str, e: OSError, what: str, resume: bool = False, note
     fix = os_error_fix(e, run_dir, run_dir if resume else None)
     return RunDirError(f"could not {what} under {run_dir} ({e.strerror or e})"
                        + (f"; {note}" if note else "") + f". Fix: {fix}")
+
+
+INBAND_LINE_EVERY = 10   # without a progress bar, in-band success is printed every this many iterations
+
+
+def _inband_rate(m: dict) -> str:
+    """In-band success over its window ("-" until an in-band episode finished)."""
+    return f"{m['inband/success_rate']:.2f}" if m.get("inband/window", 0) > 0 else "-"
+
+
+def _inband_text(m: dict) -> str:
+    """" inband_success R (N episodes)" for the progress line when in-band evaluation is on."""
+    if "inband/success_rate" not in m:
+        return ""
+    return f" inband_success {_inband_rate(m)} ({int(m['inband/episodes'])} episodes)"
 
 
 def _schedule_done(cfg: Config, state) -> bool:

@@ -109,6 +109,20 @@ class Config:
     mpc_backend: str = "auto"          # auto: the fused kernel on a GPU with bfloat16, else XLA
     svm_backend: str = "auto"          # auto: the fused SMO kernel on a GPU, else the XLA loop
 
+    # --- in-band evaluation (inside train_step) -------------------------------------------------
+    inband_eval_envs: int = 0          # E extra envs that run evaluation episodes from the task
+                                       # start in the same scan as the training envs: the
+                                       # deterministic evaluation policy, nothing written to
+                                       # learning state (0: off; metrics inband/*)
+    inband_eval_window: int = 0        # inband/success_rate over the last K finished in-band
+                                       # episodes (0: K = inband_eval_envs)
+    inband_eval_batched: bool = True   # step the in-band envs in one physics batch with the
+                                       # training envs (B + E); False: a second physics step.
+                                       # MJX (JAX) ant physics may round a B + E batch
+                                       # differently, so training then matches a run without
+                                       # in-band envs only to rounding; False keeps it bitwise.
+                                       # Point mass: exact either way; Warp: always a second step
+
     # --- evaluation, logging, checkpoints (host side) -----------------------------------------
     eval_every: int = 10               # train_step calls between evaluations (0: never)
     eval_episodes: int = 4
@@ -161,6 +175,11 @@ class Config:
         if self.td3_lr > 0:
             return self.td3_lr
         return 1e-5 if self.model_based else 3e-4
+
+    @property
+    def inband_window(self) -> int:
+        """K: finished in-band episodes that `inband/success_rate` averages over."""
+        return self.inband_eval_window if self.inband_eval_window > 0 else self.inband_eval_envs
 
     @property
     def num_iterations(self) -> int:
@@ -280,6 +299,12 @@ class Config:
                  f"model_capacity={self.model_capacity} too small for num_envs={self.num_envs} and "
                  f"steps_per_iter={self.steps_per_iter}; raise it to at least "
                  f"{self.num_envs * max(2, self.steps_per_iter)}")
+        need(self.inband_eval_envs >= 0,
+             f"inband_eval_envs={self.inband_eval_envs} must be >= 0 (0: no in-band evaluation; "
+             f"e.g. 16 runs 16 evaluation episodes from the task start inside each train_step)")
+        need(self.inband_eval_window >= 0,
+             f"inband_eval_window={self.inband_eval_window} must be >= 0 (0: the last "
+             f"inband_eval_envs finished in-band episodes)")
         need(self.buffer_len < self.option_timeout + 1,
              "buffer_len must be <= option_timeout")
         return self

@@ -138,7 +138,8 @@ def train_group(cfg: Config, seeds: Sequence[int], group_dir: Optional[str] = No
 
     from dscpp_jax import seed_group as SG
     from dscpp_jax import trainer as T
-    from dscpp_jax.cli import TrainingDiverged, _check_finite, _is_ant, _main_thread, _previous_wall
+    from dscpp_jax.cli import (INBAND_LINE_EVERY, TrainingDiverged, _check_finite, _is_ant,
+                               _main_thread, _previous_wall)
     from dscpp_jax.run_logging import RunLogger, read_config, write_config
 
     seeds = tuple(int(s) for s in seeds)
@@ -204,6 +205,7 @@ def train_group(cfg: Config, seeds: Sequence[int], group_dir: Optional[str] = No
             pbar = None
     t_start = time.time()
     last_eval = np.full((n,), np.nan)
+    inband = np.full((n,), np.nan)     # in-band success per seed (NaN: none finished yet)
     options = np.full((n,), np.nan)
     saved_iter = start_iter
     group_it = start_iter
@@ -269,18 +271,24 @@ def train_group(cfg: Config, seeds: Sequence[int], group_dir: Optional[str] = No
                     last_eval[i] = ev[i]["eval/success_rate"]
                 if lead:
                     loggers[i].log(row)
+            if "inband/success_rate" in m:
+                seen = active & (m["inband/window"] > 0)
+                inband = np.where(seen, m["inband/success_rate"], np.where(active, np.nan, inband))
             rate = per_seed_rate * int(active.sum())
+            ib = {} if not np.isfinite(inband).any() else {
+                "inband_mean": f"{np.nanmean(inband):.2f}"}
             if lead and pbar is not None:
                 pbar.update(int(env_steps.sum()) - pbar.n)
                 pbar.set_postfix(eval_mean=f"{np.nanmean(last_eval):.2f}" if np.isfinite(
                     last_eval).any() else "nan",
                     eval_min=f"{np.nanmin(last_eval):.2f}" if np.isfinite(last_eval).any() else "nan",
-                    options=_range(options), steps_per_s=f"{rate:.0f}", refresh=False)
-            elif lead and ev is not None:
+                    **ib, options=_range(options), steps_per_s=f"{rate:.0f}", refresh=False)
+            elif lead and (ev is not None or (ib and group_it % INBAND_LINE_EVERY == 0)):
+                ib_text = f" inband_success mean {ib['inband_mean']}" if ib else ""
                 print(f"[{time.time() - t_start:7.0f}s] it {group_it} env_steps/seed "
                       f"{int(env_steps.max())} episodes {int(episodes.sum())} eval_success mean "
-                      f"{np.nanmean(last_eval):.2f} min {np.nanmin(last_eval):.2f} options "
-                      f"{_range(options)} steps/s (all seeds) {rate:.0f}", flush=True)
+                      f"{np.nanmean(last_eval):.2f} min {np.nanmin(last_eval):.2f}{ib_text} "
+                      f"options {_range(options)} steps/s (all seeds) {rate:.0f}", flush=True)
             if cfg.checkpoint_every and group_it % cfg.checkpoint_every == 0:
                 ckpt.save(group_it, states)
                 saved_iter = group_it

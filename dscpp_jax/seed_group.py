@@ -47,7 +47,6 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
 from dscpp_jax import trainer as T
 from dscpp_jax.config import Config
-from envs.goal_env import select_state
 
 SEED_AXIS = "seeds"
 PyTree = Any
@@ -269,11 +268,8 @@ def _group_body(treedef, specs):
             # the old state of the frozen ones. Work that only some seeds need is skipped when
             # none needs it (train_step_impl's seed_axis).
             new, m = T.train_step_impl(state, seed_axis=T.SEED_AXIS)
-            env_state = select_state(on, new.env_state, state.env_state)
-            rest = jax.tree_util.tree_map(lambda a, b: jnp.where(on, a, b),
-                                          new.replace(env_state=None), state.replace(env_state=None))
             m = {k: jnp.where(on, v, jnp.nan) for k, v in m.items()}
-            return rest.replace(env_state=env_state), m
+            return T.select_train_state(on, new, state), m
         return jax.vmap(one, in_axes=(axes, 0), out_axes=(axes, 0), axis_name=T.SEED_AXIS)(
             states, active)
     return step
@@ -430,8 +426,9 @@ class GroupCheckpointer:
         self.manager = ocp.CheckpointManager(self.directory, options=opts)
 
     def save(self, step: int, states: PyTree) -> None:
+        from dscpp_jax.checkpoint import as_stored
         storable = jax.tree_util.tree_map(
-            lambda x: np.zeros((1,), x.dtype) if _empty(x) else x, states)
+            lambda x: np.zeros((1,), x.dtype) if _empty(x) else x, as_stored(states))
         self.manager.save(int(step), args=self._ocp.args.StandardSave(storable), force=True)
         self.manager.wait_until_finished()
 
@@ -448,7 +445,10 @@ class GroupCheckpointer:
         n = group_size(like)
         mesh = (mesh_of(like) if hasattr(like.counters.iteration, "sharding") else seed_mesh()) \
             if mesh is None else mesh
-        shardings = group_shardings(like, mesh, n)
+        from dscpp_jax.checkpoint import as_stored, from_stored
+        full_like = like
+        like = as_stored(like)
+        shardings = as_stored(group_shardings(full_like, mesh, n))
         abstract = jax.tree_util.tree_map(
             lambda x, s: np.zeros((1,), x.dtype) if _empty(x)
             else jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=s), like, shardings)
@@ -458,7 +458,7 @@ class GroupCheckpointer:
             if _empty(l):
                 return jax.jit(lambda: jnp.zeros(l.shape, l.dtype), out_shardings=s)()
             return x
-        return jax.tree_util.tree_map(back, stored, like, shardings)
+        return from_stored(jax.tree_util.tree_map(back, stored, like, shardings), full_like)
 
     def close(self) -> None:
         self.manager.wait_until_finished()

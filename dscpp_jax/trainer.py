@@ -19,6 +19,13 @@ Per environment step:
 4. option outcomes are recorded in the chain (positives: start + last `buffer_len` positions;
    negatives: the start); transitions go to the HER replay (and the model replay);
 5. finished episodes restart, from a diverse start once warm-up is over.
+
+In-band evaluation (`Config.inband_eval_envs` = E > 0): E more environments run evaluation
+episodes from the task start in the same scan, stepped in one physics batch of B + E with the
+training environments (with `inband_eval_batched` off, and on MuJoCo Warp, by a second vmapped
+step). They act with `evaluate`'s
+deterministic policy, as of the iteration's start, and write only `TrainState.inband` (their env
+and option state, and a ring of the last finished outcomes); metrics `inband/*`.
 """
 from __future__ import annotations
 
@@ -69,6 +76,22 @@ class Counters:
 
 
 @flax.struct.dataclass
+class InbandState:
+    """In-band evaluation (`Config.inband_eval_envs` = E > 0): E envs that run evaluation episodes
+    from the task start inside `train_step`, and the outcomes of the last K finished ones
+    (K = `Config.inband_window`, a ring written in order of finishing)."""
+
+    env_state: PyTree      # (E,) envs
+    exec: ExecState        # (E,) their option execution
+    key: jax.Array         # the stream's key: (k_reset, k_run) = split(key), as `evaluate` splits
+    t: jax.Array           # int32 in-band steps taken; step t acts with fold_in(k_run, t)
+    ep_steps: jax.Array    # (E,) int32 steps of the running episodes
+    success: jax.Array     # (K,) bool: finished episode reached the goal
+    steps: jax.Array       # (K,) int32: its length in steps
+    episodes: jax.Array    # int32 in-band episodes finished so far (ring slot: episodes % K)
+
+
+@flax.struct.dataclass
 class TrainState:
     env_state: PyTree
     exec: ExecState
@@ -81,6 +104,8 @@ class TrainState:
     counters: Counters
     key: jax.Array
     config: Config = flax.struct.field(pytree_node=False)
+    # None (no leaves, so checkpoints are those of a run without it) unless inband_eval_envs > 0
+    inband: Optional[InbandState] = None
 
 
 # ------------------------------------------------------------------------------------------------
@@ -129,6 +154,28 @@ def _build_env(name, episode_length, goal_tolerance, integrator, physics, worlds
         integrator=integrator, physics=physics,
         **({"warp_worlds": worlds} if physics == "warp" else {}))
     return envs.make(name, episode_length=episode_length, goal_tolerance=goal_tolerance, **kw)
+
+
+def inband_batched(config: Config) -> bool:
+    """Whether the in-band envs step in one batch with the training envs (one env step over
+    B + E): `Config.inband_eval_batched`, except on MuJoCo Warp, whose Data keeps contact buffers
+    shared by all worlds of a batch, which two batches cannot be concatenated into; there (and
+    with the option off) the in-band envs take a second vmapped step, on an env whose buffers are
+    sized for them."""
+    return config.inband_eval_batched and resolve_physics(config).physics != "warp"
+
+
+def inband_env(config: Config):
+    """The env the in-band envs step with (`make_env(config)` itself where they are batched with
+    the training envs; on Warp, one sized for ``group_size * inband_eval_envs`` worlds)."""
+    if inband_batched(config):
+        return make_env(config)
+    return make_env(config, worlds=config.group_size * config.inband_eval_envs)
+
+
+INBAND_KEY_SALT = 0x1B_E7A1
+"""`init`'s key folded with this gives the in-band stream's key (the training stream's keys come
+from splitting `init`'s key, so they are the same with in-band evaluation on or off)."""
 
 
 def td3_config(config: Config) -> TD3Config:
@@ -220,9 +267,24 @@ def init_impl(key: jax.Array, config: Config) -> TrainState:
     z = jnp.zeros((), jnp.int32)
     counters = Counters(env_steps=z, episodes=z, iteration=z, episode_successes=z,
                         option_successes=z, warmup_done=jnp.zeros((), bool))
+    inband = inband_init(jax.random.fold_in(key, INBAND_KEY_SALT), config) \
+        if config.inband_eval_envs > 0 else None
     return TrainState(env_state=env_state, exec=ex, chain=chain, td3=td3, dyn=dyn, replay=replay,
                       model_replay=model_replay, dp_table=dp_table, counters=counters, key=k_run,
-                      config=config)
+                      config=config, inband=inband)
+
+
+def inband_init(key: jax.Array, config: Config) -> InbandState:
+    """E in-band envs at the task start, reset exactly as `evaluate_episodes(state, key, E)`
+    resets its episodes; nothing finished yet."""
+    env = inband_env(config)
+    E, K = config.inband_eval_envs, config.inband_window
+    k_reset, _ = jax.random.split(key)
+    es = jax.vmap(env.reset)(jax.random.split(k_reset, E))
+    z = jnp.zeros((), jnp.int32)
+    return InbandState(env_state=es, exec=exec_init(config, es.obs, env.goal), key=key, t=z,
+                       ep_steps=jnp.zeros((E,), jnp.int32), success=jnp.zeros((K,), bool),
+                       steps=jnp.zeros((K,), jnp.int32), episodes=z)
 
 
 _init_jit = jax.jit(init_impl, static_argnames=("config",))
@@ -333,8 +395,11 @@ def _rollout(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[s
     td3, dyn, dp_table = state.td3, state.dyn, state.dp_table
     act_dim = env.action_size
 
+    # the in-band envs act with the policy as of this iteration's start, as `evaluate(state)` does
+    ib_env, ib_chain = (inband_env(config), state.chain) if state.inband is not None else (None, None)
+
     def body(carry, k):
-        es, ex, chain, replay, model_replay, acc = carry
+        es, ex, chain, replay, model_replay, acc, ib = carry
         k_opt, k_act, k_rand, k_reset, k_start = jax.random.split(k, 5)
         obs = es.obs
         xy = obs[:, :2]
@@ -346,7 +411,18 @@ def _rollout(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[s
             _all_seeds(warmup, seed_axis), lambda: rand_acts,
             lambda: jnp.where(warmup, rand_acts, _policy_actions(
                 config, td3, dyn, obs, ex.subgoal, k_act, True, rand_prob)))
-        nes = jax.vmap(env.step)(es, acts)
+        if ib is None:
+            nes = jax.vmap(env.step)(es, acts)
+        else:
+            ib_ex, ib_acts = _inband_act(config, ib_env, ib_chain, dp_table, td3, dyn, ib)
+            if inband_batched(config):   # one physics batch of B + E envs
+                both = jax.vmap(env.step)(_concat(es, ib.env_state), _concat(acts, ib_acts))
+                nes = jax.tree_util.tree_map(lambda x: x[:B], both)
+                ib_nes = jax.tree_util.tree_map(lambda x: x[B:], both)
+            else:
+                nes = jax.vmap(env.step)(es, acts)
+                ib_nes = jax.vmap(ib_env.step)(ib.env_state, ib_acts)
+            ib = _inband_record(config, ib_env, ib_chain, ib, ib_ex, ib_nes, seed_axis)
         next_xy = nes.obs[:, :2]
         nan = nes.info["nan"] > 0
         overflow = jnp.any(nes.info["overflow"] > 0)
@@ -385,15 +461,16 @@ def _rollout(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[s
             return select_states(done, fresh, nes)
 
         nes = jax.lax.cond(_any_seed(jnp.any(done), seed_axis), reset_all, lambda _: nes, None)
-        return (nes, ex, chain, replay, model_replay, acc), None
+        return (nes, ex, chain, replay, model_replay, acc, ib), None
 
     K = config.max_options
     z = jnp.zeros((), jnp.int32)
     acc0 = dict(episodes=z, episode_successes=z, option_events=z, option_successes=z,
                 nan_episodes=z, ep_len_sum=z, overflow_steps=z)
-    carry = (state.env_state, state.exec, state.chain, state.replay, state.model_replay, acc0)
+    carry = (state.env_state, state.exec, state.chain, state.replay, state.model_replay, acc0,
+             state.inband)
     carry, _ = jax.lax.scan(body, carry, jax.random.split(key, config.steps_per_iter))
-    es, ex, chain, replay, model_replay, acc = carry
+    es, ex, chain, replay, model_replay, acc, inband = carry
     c = state.counters
     counters = c.replace(
         env_steps=c.env_steps + B * config.steps_per_iter,
@@ -402,7 +479,7 @@ def _rollout(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[s
         option_successes=c.option_successes + acc["option_successes"],
     )
     state = state.replace(env_state=es, exec=ex, chain=chain, replay=replay,
-                          model_replay=model_replay, counters=counters)
+                          model_replay=model_replay, counters=counters, inband=inband)
     n_ep = jnp.maximum(acc["episodes"], 1)
     metrics = {
         "train/episodes_finished": acc["episodes"].astype(jnp.float32),
@@ -418,7 +495,89 @@ def _rollout(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[s
         "train/warmup": warmup.astype(jnp.float32),
         "train/random_action_prob": rand_prob,
     }
+    if inband is not None:
+        metrics.update(inband_metrics(config, inband))
     return state, metrics
+
+
+# ------------------------------------------------------------------------------------------------
+# In-band evaluation
+# ------------------------------------------------------------------------------------------------
+def _concat(a, b):
+    return jax.tree_util.tree_map(lambda x, y: jnp.concatenate([x, y], axis=0), a, b)
+
+
+def _where_rows(pred, on_true, on_false):
+    """Per-row select over pytrees with a leading axis (pred: (E,))."""
+    return jax.tree_util.tree_map(
+        lambda a, b: jnp.where(pred.reshape(pred.shape + (1,) * (a.ndim - 1)), a, b),
+        on_true, on_false)
+
+
+def _inband_act(config: Config, env, chain, dp_table, td3, dyn, ib: InbandState):
+    """The evaluation policy at in-band step ``ib.t``: `_eval_impl`'s choice at its step t (option
+    selection preferring pessimistic regions as configured, subgoals, MPC or the actor without
+    exploration). Returns (exec state, (E, act) actions)."""
+    _, k_run = jax.random.split(ib.key)
+    k_opt, k_act = jax.random.split(jax.random.fold_in(k_run, ib.t))
+    obs = ib.env_state.obs
+    ex = _choose_options(config, env, chain, dp_table, td3, ib.exec, obs, k_opt, evaluation=True)
+    acts = _policy_actions(config, td3, dyn, obs, ex.subgoal, k_act, False, 0.0)
+    return ex, acts
+
+
+def _inband_record(config: Config, env, chain, ib: InbandState, ex: ExecState, nes,
+                   seed_axis=None) -> InbandState:
+    """After the in-band envs stepped to `nes`: end their options as `_eval_impl` does, write the
+    outcomes of finished episodes into the ring, restart those envs at the task start."""
+    E, K = config.inband_eval_envs, config.inband_window
+    ex = _push_traj(ex, nes.obs[:, :2])
+    done = nes.done > 0
+    ended, _ = _option_end(config, env, chain, ex, nes.obs[:, :2], nes.done)
+    ex = ex.replace(option=jnp.where(ended, NO_OPTION, ex.option))
+    ep_steps = ib.ep_steps + 1
+    success = done & (nes.info["success"] > 0)
+    # ring slots in order of finishing (env order within a step); when more than K finish in one
+    # step only the last K are kept, so no two writes share a slot
+    d = done.astype(jnp.int32)
+    n_new = jnp.sum(d)
+    rank = jnp.cumsum(d) - 1
+    slot = jnp.where(done & (rank >= n_new - K), (ib.episodes + rank) % K, K)
+    ring_success = ib.success.at[slot].set(success, mode="drop")
+    ring_steps = ib.steps.at[slot].set(ep_steps, mode="drop")
+
+    def restart(_):
+        k_reset, _ = jax.random.split(ib.key)
+        fresh = jax.vmap(env.reset)(jax.random.split(jax.random.fold_in(k_reset, ib.t + 1), E))
+        return (select_states(done, fresh, nes),
+                _where_rows(done, exec_init(config, fresh.obs, env.goal), ex))
+
+    es, ex = jax.lax.cond(_any_seed(jnp.any(done), seed_axis), restart, lambda _: (nes, ex), None)
+    return ib.replace(env_state=es, exec=ex, t=ib.t + 1, ep_steps=jnp.where(done, 0, ep_steps),
+                      success=ring_success, steps=ring_steps, episodes=ib.episodes + n_new)
+
+
+def inband_metrics(config: Config, ib: InbandState) -> Dict[str, jax.Array]:
+    """Scalars over the last K finished in-band episodes (the window; fewer before K finished).
+
+    inband/success_rate: share of the window that reached the goal (0 while none finished);
+    inband/steps_to_goal: mean length of the window's successful episodes (`episode_length`
+    while none succeeded); inband/episodes: finished so far; inband/window: episodes in the
+    window. Never NaN: inband/window = 0 says that the first two mean nothing yet."""
+    K = ib.success.shape[0]
+    n = jnp.minimum(ib.episodes, K)
+    valid = jnp.arange(K) < n        # slots fill from 0; all valid once K episodes finished
+    succ = valid & ib.success
+    n_succ = jnp.sum(succ.astype(jnp.int32))
+    f = lambda x: jnp.asarray(x, jnp.float32)
+    return {
+        "inband/success_rate": f(jnp.where(n > 0, n_succ / jnp.maximum(n, 1), 0.0)),
+        "inband/steps_to_goal": f(jnp.where(
+            n_succ > 0, jnp.sum(jnp.where(succ, ib.steps, 0)) / jnp.maximum(n_succ, 1),
+            config.episode_length)),
+        "inband/episodes": f(ib.episodes),
+        "inband/window": f(n),
+    }
 
 
 def _learn(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[str, jax.Array]]:
@@ -489,6 +648,22 @@ def train_step_impl(state: TrainState, seed_axis: Optional[str] = None
                "counters/episodes": c.episodes.astype(jnp.float32),
                "counters/iteration": c.iteration.astype(jnp.float32)}
     return state, metrics
+
+
+def select_train_state(pred, on_true: TrainState, on_false: TrainState) -> TrainState:
+    """`on_true` where the scalar `pred` holds, else `on_false`: env states (the training and the
+    in-band ones) merge with `select_state` (MuJoCo Warp's Data merges itself), every other leaf
+    with `jnp.where`."""
+    def strip(s):
+        return s.replace(env_state=None, inband=None if s.inband is None
+                         else s.inband.replace(env_state=None))
+    rest = jax.tree_util.tree_map(lambda a, b: jnp.where(pred, a, b), strip(on_true),
+                                  strip(on_false))
+    out = rest.replace(env_state=select_state(pred, on_true.env_state, on_false.env_state))
+    if on_true.inband is not None:
+        out = out.replace(inband=rest.inband.replace(env_state=select_state(
+            pred, on_true.inband.env_state, on_false.inband.env_state)))
+    return out
 
 
 def _check_state(state) -> None:
