@@ -3,6 +3,7 @@ few iterations each; every figure that has runs is drawn with its CSV, the READM
 claim, and a second call trains nothing (finished groups are skipped)."""
 import csv
 import hashlib
+import json
 import os
 import sys
 
@@ -100,9 +101,23 @@ def test_reproduce_trains_draws_reports_then_skips(tmp_path, capsys):
                                 "16", "--dry-run")) == 0
     text = capsys.readouterr().out
     group = os.path.join(runs, "point_u_maze-dsc-g0-1")
-    assert f"point_u_maze-dsc-g0-1: would resume: python -m dscpp_jax.cli train --resume {group} " \
-           f"--total-episodes 16" in text
+    line = next(l for l in text.splitlines() if "point_u_maze-dsc-g0-1: would resume" in l)
+    assert f"python -m dscpp_jax.cli train --resume {group} --total-episodes 16" in line
+    # a resume may change only the schedule and host-side cadences
+    assert "--set eval_every=2" in line and "--set checkpoint_every=2" in line
+    assert "num_envs" not in line and "--algo" not in line
     assert "point_u_maze-dual-g0-1: would start: " in text and "--algo dual" in text
+
+    # a call killed after logging its last iteration but before saving it (eval.json, written
+    # after the last checkpoint, is older than metrics.csv) is not finished
+    ev = os.path.join(runs, "point_u_maze-mf_dscpp-g0-1", "s1", "eval.json")
+    e = json.load(open(ev))
+    e["iteration"] -= 1
+    json.dump(e, open(ev, "w"))
+    assert reproduce.main(_args(runs, out, "--fig", "5", "--dry-run")) == 0
+    text = capsys.readouterr().out
+    assert "point_u_maze-mf_dscpp-g0-1: would resume" in text
+    assert "point_u_maze-dsc-g0-1: skipped (finished)" in text
 
 
 def test_bad_figure_and_a2_only(tmp_path, capsys):
