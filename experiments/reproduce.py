@@ -330,6 +330,7 @@ def train_all(args, figs: dict) -> dict:
     import queue
     from concurrent.futures import ThreadPoolExecutor
     exps = list(dict.fromkeys(e for es in figs.values() for e in es))
+    exps.sort(key=lambda e: e.tag == "long")   # the 12,000-episode TD3 run last
     names = {}
     for e in exps:   # groups of one directory (Figure 4's, shared with A1) train once
         names.setdefault(e.name(args.env_map), e)
@@ -430,6 +431,8 @@ def curve_figure(data: Data, panels: list, column: str, ylabel: str, path: str, 
         if log and positive.size:   # zeros (an option never executed) fall below the axis
             ax.set_yscale("log")
             ax.set_ylim(bottom=positive.min() / 3, top=max(1.0, positive.max() * 1.5))
+        if column.endswith("success_rate"):
+            ax.set_ylim(-0.03, 1.03)
         ax.grid(alpha=0.3)
         if ax.get_legend_handles_labels()[0]:
             ax.legend(fontsize=8)
@@ -444,9 +447,14 @@ def curve_figure(data: Data, panels: list, column: str, ylabel: str, path: str, 
     return path
 
 
+MAZE_TITLES = {"u_maze": "U-maze", "medium": "large maze (medium)", "four_rooms": "four rooms",
+               "ant_reacher": "Ant-Reacher"}
+
+
 def _maze_title(maze: str, env_map: dict) -> str:
     run = env_map.get(maze, maze)
-    return maze if run == maze else f"{maze} (as {run})"
+    title = MAZE_TITLES.get(maze, maze)
+    return title if run == maze else f"{title} (as {run})"
 
 
 def fig6(data: Data, out: str) -> Optional[str]:
@@ -902,7 +910,7 @@ def build_parser() -> argparse.ArgumentParser:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--fig", default="all", help="4, 5, 6, A1, A2, A3 or all (comma separated)")
     p.add_argument("--seeds", default="0-4", help="seeds of every group (default 0-4: 5 seeds)")
-    p.add_argument("--episodes", type=int, default=2001,
+    p.add_argument("--episodes", "--total-episodes", dest="episodes", type=int, default=2001,
                    help="episodes per run of Figures 5, 6 and A3 (default 2001)")
     p.add_argument("--total-steps", dest="total_steps", type=int, default=None,
                    help="also stop each run at this many env steps (default: loose enough that "
