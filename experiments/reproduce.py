@@ -3,18 +3,20 @@ figure as PNG, the numbers behind it as CSV, and a README that checks every clai
 against what was measured.
 
     python experiments/reproduce.py --fig 6                      # or: make reproduce FIG=6
-    python experiments/reproduce.py --fig all --time-budget 3600 # re-run the same command to go on
+    python experiments/reproduce.py --fig all --time-budget 3600 # re-run the same command: goes on
     python experiments/reproduce.py --fig 5,A3 --report-only     # figures + README from what exists
     # a CPU smoke run on point-mass twins
     python experiments/reproduce.py --fig 6,5,A3 --env-map u_maze=point_u_maze \\
-        --mazes u_maze --algos dsc,mf_dscpp --seeds 0-1 --episodes 40 --runs-root /tmp/r --out /tmp/o
+        --mazes u_maze --algos dsc,mf_dscpp --seeds 0-1 --episodes 40 \\
+        --runs-root /tmp/r --out /tmp/o
 
 One `train --seeds` program per (algorithm, env, subgoal, seeds), in a group directory named
 after them under --runs-root (no time stamp; `-long` for the 12,000-episode TD3, `-a1` for
 appendix Figure 1's own runs), so that the next call finds it: a group whose seeds have all
 reached the schedule is skipped, one with a checkpoint is continued with `train --resume` (also to
 a longer --episodes), one without a checkpoint (killed before its first) is moved aside and
-started again. A group made with other settings (--set, --preset) is left alone, with a message. `--time-budget` bounds each train call (it checkpoints and stops); the figures are drawn
+started again. A group made with other settings (--set, --preset) is left alone, with a
+message. `--time-budget` bounds each train call (it checkpoints and stops); the figures are drawn
 from whatever has been trained, and the README marks claims whose runs have not finished.
 
 Protocol (defaults, as in the paper): 5 seeds, 2,001 episodes of at most 1,000 steps (the
@@ -69,7 +71,7 @@ class Exp:
     episodes: int
     seeds: str
     subgoal: str = "robust"
-    tag: str = ""              # "" | "long" (Fig. 6's 12,000-episode TD3) | "a1" (keeps checkpoints)
+    tag: str = ""              # "" | "long" (Fig. 6's 12,000-episode TD3) | "a1" (A1's own)
     sets: tuple = ()           # extra --set values of this group
 
     def run_env(self, env_map: dict) -> str:
@@ -79,7 +81,8 @@ class Exp:
         from dscpp_jax.seed_group import format_seeds, parse_seeds
         sub = "-dp" if self.subgoal == "dp" else ""
         tag = f"-{self.tag}" if self.tag else ""
-        return f"{self.run_env(env_map)}-{self.algo}{sub}-g{format_seeds(parse_seeds(self.seeds))}{tag}"
+        seeds = format_seeds(parse_seeds(self.seeds))
+        return f"{self.run_env(env_map)}-{self.algo}{sub}-g{seeds}{tag}"
 
 
 def _csv_list(text: Optional[str], default) -> tuple:
@@ -838,7 +841,8 @@ def claims(data: Data, args, figures: dict) -> list:
         out.append(("A3", claim, "-", "not run"))
     else:
         measured = "; ".join(f"{NAMES[a]} {_fmt(v)}" for a, v in got.items()) + \
-            f" ({next(iter(exps.values())).run_env(args.env_map)}, options at the end, incl. global)"
+            f" ({next(iter(exps.values())).run_env(args.env_map)}, options at the end, incl. " \
+            "global)"
         ours = [a for a in ("mf_dscpp", "mb_dscpp") if a in got]
         ok = "dsc" in got and bool(ours) and all(got["dsc"].mean() > got[a].mean() for a in ours)
         complete = "dsc" in got and len(ours) == 2 and all(data.finished(e) for e in exps.values())
@@ -870,7 +874,8 @@ def write_readme(data: Data, args, figures: dict, status: dict) -> str:
         "Everything at the paper's protocol (on a GPU host; re-run the same command to "
         "continue): `make reproduce FIG=all ARGS='--time-budget 3600 --long-td3'`.",
         "",
-        f"Protocol this call asked for: preset `{args.preset}`, seeds {args.seeds}, {args.episodes} episodes "
+        f"Protocol this call asked for: preset `{args.preset}`, seeds {args.seeds}, "
+        f"{args.episodes} episodes "
         f"(Figure 4 / appendix Figure 1: {args.fig4_episodes} on Ant-Reacher), success from the "
         "task start, mean ± standard error over seeds"
         + (f"; overrides: {', '.join(args.set)}" if args.set else "")
@@ -918,14 +923,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--preset", default="fast", choices=("fast", "paper"))
     p.add_argument("--algos", default=None,
                    help="only these algorithms (comma separated; default: all the figures name)")
-    p.add_argument("--mazes", default=None, help="Figure 6's mazes (default u_maze,medium,four_rooms)")
+    p.add_argument("--mazes", default=None,
+                   help="Figure 6's mazes (default u_maze,medium,four_rooms)")
     p.add_argument("--env-map", dest="env_map_list", action="append", default=[],
                    metavar="PAPER=ENV", help="train ENV where the paper uses PAPER, e.g. "
                    "u_maze=point_u_maze (repeatable)")
     p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                    help="Config override for every run (repeatable)")
     p.add_argument("--long-td3", action="store_true",
-                   help="also train TD3+HER on U-maze for --long-td3-episodes (Figure 6's dashed line)")
+                   help="also train TD3+HER on U-maze for --long-td3-episodes (Figure 6's "
+                        "dashed line)")
     p.add_argument("--long-td3-episodes", type=int, default=12000)
     p.add_argument("--fig4-algo", default="mb_dscpp", help="Figure 4's algorithm (and A1's DSC++)")
     p.add_argument("--fig4-episodes", type=int, default=1000)
