@@ -10,8 +10,9 @@ SEED  ?= 0
 ARGS  ?=
 RUN   ?=
 SEEDS ?=
+FIG   ?= all
 
-.PHONY: install test train eval plot video bench-env bench-learners bench-options bench-seeds clean
+.PHONY: install test train eval plot video reproduce bench-env bench-learners bench-options bench-seeds clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -45,6 +46,12 @@ plot: $(STAMP)
 video: $(STAMP)
 	@test -n "$(RUN)" || (echo "usage: make video RUN=runs/<run-dir> [ARGS='--episodes 2 --every 2']"; exit 2)
 	$(BIN)/python -m dscpp_jax.cli video --run $(RUN) $(ARGS)
+
+# The paper's figures (FIG=4|5|6|A1|A2|A3|all, comma lists too): trains the seed groups they need
+# under runs/paper (skipping finished ones, resuming the others), writes PNG + CSV and a claims
+# table to experiments/results/paper. Re-run the same command to continue. See docs/training.md.
+reproduce: $(STAMP)
+	$(BIN)/python experiments/reproduce.py --fig $(FIG) $(ARGS)
 
 bench-env: $(STAMP)
 	$(BIN)/python experiments/bench_env.py $(ARGS)

@@ -1,0 +1,1006 @@
+"""Reproduce the paper's comparisons: train what a figure needs as seed groups, then write each
+figure as PNG, the numbers behind it as CSV, and a README that checks every claim of the paper
+against what was measured.
+
+    python experiments/reproduce.py --fig 6                      # or: make reproduce FIG=6
+    python experiments/reproduce.py --fig all --time-budget 3600 # re-run the same command: goes on
+    python experiments/reproduce.py --fig 5,A3 --report-only     # figures + README from what exists
+    # a CPU smoke run on point-mass twins
+    python experiments/reproduce.py --fig 6,5,A3 --env-map u_maze=point_u_maze \\
+        --mazes u_maze --algos dsc,mf_dscpp --seeds 0-1 --episodes 40 \\
+        --runs-root /tmp/r --out /tmp/o
+
+One `train --seeds` program per (algorithm, env, subgoal, seeds), in a group directory named
+after them under --runs-root (no time stamp; `-long` for the 12,000-episode TD3, `-a1` for
+appendix Figure 1's own runs), so that the next call finds it: a group whose seeds have all
+reached the schedule is skipped, one with a checkpoint is continued with `train --resume` (also to
+a longer --episodes), one without a checkpoint (killed before its first) is moved aside and
+started again. A group made with other settings (--set, --preset) is left alone, with a
+message. `--time-budget` bounds each train call (it checkpoints and stops); the figures are drawn
+from whatever has been trained, and the README marks claims whose runs have not finished.
+
+Protocol (defaults, as in the paper): 5 seeds, 2,001 episodes of at most 1,000 steps (the
+preset's episode length), success from the task start, mean and standard error over seeds.
+Figure 4 and appendix Figure 1 train on Ant-Reacher for 1,000 episodes; Figure 6's dashed line
+is TD3+HER after 12,000 episodes (`--long-td3` schedules it). Appendix Figure 2 (one critic per
+option) needs per-option critics, which this implementation does not have: it is skipped.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from typing import Optional
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+if ROOT not in sys.path:
+    sys.path.insert(0, ROOT)
+
+import numpy as np  # noqa: E402
+
+FIGS = ("4", "5", "6", "A1", "A2", "A3")
+MAZES = ("u_maze", "medium", "four_rooms")
+FIG6_ALGOS = ("td3_her", "mb_flat", "mb_flat_value", "dsc", "mf_dscpp", "mb_dscpp")
+FIG5_ALGOS = ("dsc", "dual", "mf_dscpp", "mb_dscpp")
+A3_ALGOS = FIG5_ALGOS
+NAMES = {"td3_her": "TD3+HER", "mb_flat": "MB flat", "mb_flat_value": "MB flat + value",
+         "dsc": "DSC", "dual": "DSC + dual classifiers", "mf_dscpp": "MF-DSC++",
+         "mb_dscpp": "MB-DSC++"}
+CORNERS = ((9.0, 9.0), (-9.0, 9.0), (9.0, -9.0), (-9.0, -9.0))
+A2_NOTE = ("needs per-option critics: not implemented (one goal-conditioned critic serves every "
+           "option here)")
+# Config fields that `train --resume` accepts (schedule and host-side cadences)
+RESUME_FIELDS = {"total_env_steps", "total_episodes", "eval_every", "eval_episodes",
+                 "checkpoint_every", "keep_checkpoints", "log_every"}
+
+
+# ------------------------------------------------------------------------------------------------
+# Experiments
+# ------------------------------------------------------------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class Exp:
+    """One seed group: a paper env (before --env-map), an algorithm, a subgoal rule, a schedule."""
+    env: str
+    algo: str
+    episodes: int
+    seeds: str
+    subgoal: str = "robust"
+    tag: str = ""              # "" | "long" (Fig. 6's 12,000-episode TD3) | "a1" (A1's own)
+    sets: tuple = ()           # extra --set values of this group
+
+    def run_env(self, env_map: dict) -> str:
+        return env_map.get(self.env, self.env)
+
+    def name(self, env_map: dict) -> str:
+        from dscpp_jax.seed_group import format_seeds, parse_seeds
+        sub = "-dp" if self.subgoal == "dp" else ""
+        tag = f"-{self.tag}" if self.tag else ""
+        seeds = format_seeds(parse_seeds(self.seeds))
+        return f"{self.run_env(env_map)}-{self.algo}{sub}-g{seeds}{tag}"
+
+
+def _csv_list(text: Optional[str], default) -> tuple:
+    if not text:
+        return tuple(default)
+    return tuple(t.strip() for t in text.split(",") if t.strip())
+
+
+def parse_figs(text: str) -> tuple:
+    out = []
+    for f in _csv_list(text, FIGS):
+        f = f.upper()
+        if f == "ALL":
+            out.extend(FIGS)
+            continue
+        if f not in FIGS:
+            raise ValueError(f"unknown figure {f!r}; choose from {', '.join(FIGS)} or all")
+        out.append(f)
+    return tuple(dict.fromkeys(out))
+
+
+def plan(args) -> dict:
+    """{figure: [Exp, ...]} for the requested figures (A2: [])."""
+    figs = parse_figs(args.fig)
+    algos = set(_csv_list(args.algos, FIG6_ALGOS + ("dual",)))
+    mazes = _csv_list(args.mazes, MAZES)
+    out: dict[str, list] = {}
+    ep, seeds = args.episodes, args.seeds
+    if "6" in figs:
+        out["6"] = [Exp(m, a, ep, seeds) for m in mazes for a in FIG6_ALGOS if a in algos]
+        if args.long_td3:
+            out["6"].append(Exp("u_maze", "td3_her", args.long_td3_episodes, seeds, tag="long"))
+    if "5" in figs:
+        out["5"] = [Exp("u_maze", a, ep, seeds) for a in FIG5_ALGOS if a in algos]
+    if "A3" in figs:
+        out["A3"] = [Exp("u_maze", a, ep, seeds) for a in A3_ALGOS if a in algos]
+    # Appendix Figure 1 needs checkpoints from early in training: its groups keep them all
+    # (--a1-keep). With --a1-seeds equal to --seeds it shares Figure 4's groups, which then keep
+    # theirs too; otherwise it trains its own (by default one seed, as the figure shows one run).
+    from dscpp_jax.seed_group import parse_seeds
+    keep = (f"keep_checkpoints={args.a1_keep}",)
+    share = parse_seeds(args.a1_seeds) == parse_seeds(seeds)
+    fig4 = [Exp("ant_reacher", args.fig4_algo, args.fig4_episodes, seeds, subgoal=s,
+                sets=keep if share else ()) for s in ("robust", "dp")]
+    if "4" in figs:
+        out["4"] = fig4
+    if "A1" in figs:
+        out["A1"] = [Exp("ant_reacher", "dsc", args.fig4_episodes, args.a1_seeds,
+                         tag="" if share else "a1", sets=keep)]
+        if args.fig4_algo != "dsc":
+            out["A1"].append(fig4[0] if share else Exp("ant_reacher", args.fig4_algo,
+                                                       args.fig4_episodes, args.a1_seeds,
+                                                       tag="a1", sets=keep))
+    if "A2" in figs:
+        out["A2"] = []
+    return out
+
+
+# ------------------------------------------------------------------------------------------------
+# Group state on disk (no JAX)
+# ------------------------------------------------------------------------------------------------
+def _overrides(pairs) -> dict:
+    from dscpp_jax.config import parse_value
+    kw = {}
+    for p in pairs:
+        if "=" not in p:
+            raise ValueError(f"--set expects name=value, got {p!r}")
+        k, v = p.split("=", 1)
+        k = k.strip().replace("-", "_")
+        kw[k] = parse_value(k, v.strip())
+    return kw
+
+
+def checkpoint_steps(group_dir: str) -> list:
+    d = os.path.join(group_dir, "checkpoints")
+    if not os.path.isdir(d):
+        return []
+    return sorted(int(s) for s in os.listdir(d) if s.isdigit())
+
+
+def seed_dirs(group_dir: str) -> list:
+    """The seed directories of a group that have logged at least one iteration."""
+    try:
+        with open(os.path.join(group_dir, "group.json")) as f:
+            seeds = json.load(f)["seeds"]
+    except (OSError, ValueError, KeyError):
+        return []
+    dirs = [os.path.join(group_dir, f"s{s}") for s in seeds]
+    return [d for d in dirs if os.path.isfile(os.path.join(d, "metrics.csv"))]
+
+
+def _last_row(run_dir: str) -> Optional[dict]:
+    from dscpp_jax.run_logging import read_metrics
+    try:
+        m = read_metrics(run_dir)
+    except (OSError, ValueError):
+        return None
+    if not m.get("iteration"):
+        return None
+    return {k: v[-1] for k, v in m.items()}
+
+
+def schedule(exp: Exp, args) -> tuple:
+    """(total_episodes, total_env_steps): the episode budget binds; the step cap is loose enough
+    for it ((episodes + num_envs) x episode length) unless --total-steps gives one."""
+    from dscpp_jax.config import preset
+    kw = _overrides(list(args.set) + list(exp.sets))
+    kw.pop("total_env_steps", None)
+    cfg = preset(args.preset, exp.run_env(args.env_map), exp.algo, **kw)
+    steps = args.total_steps or (exp.episodes + cfg.num_envs) * cfg.episode_length
+    return exp.episodes, int(steps)
+
+
+def group_state(group_dir: str, sched: tuple) -> str:
+    """new | stale (a directory without a checkpoint) | unfinished | finished."""
+    if not os.path.isdir(group_dir):
+        return "new"
+    steps = checkpoint_steps(group_dir)
+    if not os.path.isfile(os.path.join(group_dir, "group.json")) or not steps:
+        return "stale"
+    with open(os.path.join(group_dir, "group.json")) as f:
+        n = len(json.load(f)["seeds"])
+    dirs = seed_dirs(group_dir)
+    rows = [_last_row(d) for d in dirs]
+    if len(dirs) < n or any(r is None for r in rows):
+        return "unfinished"
+    episodes, total = sched
+    done = all(r["env_steps"] >= total or (episodes > 0 and r["episodes"] >= episodes)
+               for r in rows)
+    # train writes each seed's eval.json after its last checkpoint: a call killed after logging
+    # an iteration but before saving it has an older (or no) eval.json, and is not done
+    if done and all(_eval_iteration(d) == int(r["iteration"]) for d, r in zip(dirs, rows)):
+        return "finished"
+    return "unfinished"
+
+
+def _eval_iteration(seed_dir: str) -> Optional[int]:
+    try:
+        with open(os.path.join(seed_dir, "eval.json")) as f:
+            return int(json.load(f)["iteration"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+def config_mismatch(group_dir: str, exp: Exp, args) -> list:
+    """Fields the group was made with that differ from what this call asks for."""
+    with open(os.path.join(group_dir, "group.json")) as f:
+        have = json.load(f)["config"]
+    want = {k: v for k, v in _overrides(list(args.set) + list(exp.sets)).items()
+            if k not in RESUME_FIELDS}
+    want.update(env=exp.run_env(args.env_map), algo=exp.algo, subgoal=exp.subgoal,
+                preset=args.preset)
+    return [f"{k}={have.get(k)!r} (asked: {v!r})" for k, v in sorted(want.items())
+            if have.get(k) != v]
+
+
+# ------------------------------------------------------------------------------------------------
+# Training
+# ------------------------------------------------------------------------------------------------
+def train_command(exp: Exp, group_dir: str, args, resume: bool) -> list:
+    episodes, total = schedule(exp, args)
+    cmd = [sys.executable, "-m", "dscpp_jax.cli", "train"]
+    sets = list(args.set) + list(exp.sets)
+    if resume:
+        cmd += ["--resume", group_dir]
+        sets = [s for s in sets if s.split("=", 1)[0].strip().replace("-", "_") in RESUME_FIELDS]
+    else:
+        cmd += ["--env", exp.run_env(args.env_map), "--algo", exp.algo, "--seeds", exp.seeds,
+                "--preset", args.preset, "--run-dir", group_dir]
+        if exp.subgoal != "robust":
+            cmd += ["--subgoal", exp.subgoal]
+    cmd += ["--total-episodes", str(episodes), "--total-steps", str(total), "--no-progress"]
+    for s in sets:
+        if s.split("=", 1)[0].strip().replace("-", "_") not in ("total_env_steps",
+                                                                 "total_episodes"):
+            cmd += ["--set", s]
+    if args.time_budget:
+        cmd += ["--time-budget", str(args.time_budget)]
+    if not args.deterministic:
+        cmd += ["--no-deterministic"]
+    if args.compile_cache:
+        cmd += ["--compile-cache", args.compile_cache]
+    return cmd
+
+
+def train_one(exp: Exp, args, gpus) -> str:
+    """Train, continue or skip one group; returns its status word."""
+    name = exp.name(args.env_map)
+    gdir = os.path.join(args.runs_root, name)
+    sched = schedule(exp, args)
+    st = group_state(gdir, sched)
+    if st in ("finished", "unfinished"):
+        bad = config_mismatch(gdir, exp, args)
+        if bad:
+            print(f"[reproduce] {name}: left as it is: the group was made with other settings "
+                  f"({'; '.join(bad)}) and the figures show it as made. To train it with these "
+                  f"settings, move {gdir} away or use another --runs-root", flush=True)
+            return "mismatch"
+    if st == "finished":
+        print(f"[reproduce] {name}: skipped (finished)", flush=True)
+        return "skipped"
+    resume = st == "unfinished"
+    cmd = train_command(exp, gdir, args, resume)
+    shown = " ".join(["python"] + cmd[1:])
+    if args.dry_run:
+        print(f"[reproduce] {name}: would {'resume' if resume else 'start'}: {shown}", flush=True)
+        return "dry-run"
+    if st == "stale":
+        aside = f"{gdir}.stale-{time.strftime('%Y%m%d-%H%M%S')}"
+        shutil.move(gdir, aside)
+        print(f"[reproduce] {name}: no checkpoint, moved aside to {aside}", flush=True)
+    logs = os.path.join(args.runs_root, "logs")
+    os.makedirs(logs, exist_ok=True)
+    log = os.path.join(logs, f"{name}.log")
+    env = dict(os.environ)
+    env["PYTHONPATH"] = ROOT + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    gpu = gpus.get() if gpus is not None else None
+    if gpu is not None:
+        env["CUDA_VISIBLE_DEVICES"] = gpu
+    elif args.jobs > 1 and "XLA_PYTHON_CLIENT_MEM_FRACTION" not in env:
+        # several calls on one GPU: each may take its share, not JAX's default 75 %
+        env["XLA_PYTHON_CLIENT_MEM_FRACTION"] = f"{0.9 / args.jobs:.2f}"
+    where = f" on GPU {gpu}" if gpu is not None else ""
+    print(f"[reproduce] {name}: {'resumed' if resume else 'started'}{where} (log: {log})",
+          flush=True)
+    t0 = time.time()
+    try:
+        with open(log, "a") as f:
+            f.write(f"\n== {time.strftime('%Y-%m-%d %H:%M:%S')} {shown}\n")
+            f.flush()
+            rc = subprocess.call(cmd, cwd=ROOT, env=env, stdout=f, stderr=subprocess.STDOUT)
+    finally:
+        if gpu is not None:
+            gpus.put(gpu)
+    dt = time.time() - t0
+    if rc != 0:
+        print(f"[reproduce] {name}: train FAILED (exit {rc}, {dt:.0f}s); see {log}", flush=True)
+        return f"failed ({rc})"
+    word = ("finished" if group_state(gdir, sched) == "finished"
+            else "stopped at the time budget; run again to continue")
+    print(f"[reproduce] {name}: {word} ({dt:.0f}s)", flush=True)
+    return "resumed" if resume else "trained"
+
+
+def train_all(args, figs: dict) -> dict:
+    """Train (or continue, or skip) every group the figures need, --jobs at a time (each on its
+    own GPU with --gpus); {group name: status}."""
+    import queue
+    from concurrent.futures import ThreadPoolExecutor
+    exps = list(dict.fromkeys(e for es in figs.values() for e in es))
+    exps.sort(key=lambda e: e.tag == "long")   # the 12,000-episode TD3 run last
+    names = {}
+    for e in exps:   # groups of one directory (Figure 4's, shared with A1) train once
+        names.setdefault(e.name(args.env_map), e)
+    gpus = None
+    if args.gpus:
+        gpus = queue.Queue()
+        for g in _csv_list(args.gpus, ()):
+            gpus.put(g)
+    jobs = max(1, args.jobs if not args.gpus else min(args.jobs, gpus.qsize()))
+    with ThreadPoolExecutor(jobs) as pool:
+        futures = {n: pool.submit(train_one, e, args, gpus) for n, e in names.items()}
+        return {n: f.result() for n, f in futures.items()}
+
+
+# ------------------------------------------------------------------------------------------------
+# Curves from metrics.csv
+# ------------------------------------------------------------------------------------------------
+def curves(dirs, column: str, x: str = "episodes") -> list:
+    from dscpp_jax.plots import _curve
+    return [c for c in (_curve(d, column, x) for d in dirs) if c is not None]
+
+
+def mean_se(cs: list, max_points: int = 200):
+    """(grid, mean, s.e., n) over curves on the union of their x values up to the shortest."""
+    xmax = min(c[0][-1] for c in cs)
+    grid = np.unique(np.concatenate([c[0][c[0] <= xmax] for c in cs]))
+    if grid.size > max_points:
+        grid = grid[np.linspace(0, grid.size - 1, max_points).round().astype(int)]
+    ys = np.stack([np.interp(grid, c[0], c[1]) for c in cs])
+    se = ys.std(0, ddof=1) / np.sqrt(len(cs)) if len(cs) > 1 else np.zeros_like(grid)
+    return grid, ys.mean(0), se, len(cs)
+
+
+def finals(cs: list) -> np.ndarray:
+    return np.array([c[1][-1] for c in cs])
+
+
+def _plt():
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    return plt
+
+
+def _write_csv(path: str, header, rows) -> None:
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(header)
+        w.writerows(rows)
+
+
+class Data:
+    """What the runs hold, per experiment: seed dirs, finished or not."""
+
+    def __init__(self, args, figs: dict):
+        self.args = args
+        self.figs = figs
+        self.info = {}
+        for exp in dict.fromkeys(e for es in figs.values() for e in es):
+            gdir = os.path.join(args.runs_root, exp.name(args.env_map))
+            self.info[exp] = dict(dir=gdir, seeds=seed_dirs(gdir),
+                                  finished=group_state(gdir, schedule(exp, args)) == "finished")
+
+    def dirs(self, exp):
+        return self.info[exp]["seeds"] if exp in self.info else []
+
+    def finished(self, exp):
+        return exp in self.info and self.info[exp]["finished"]
+
+
+def curve_figure(data: Data, panels: list, column: str, ylabel: str, path: str, csv_path: str,
+                 log: bool = False, hline: Optional[tuple] = None) -> Optional[str]:
+    """panels: [(title, [Exp, ...])]; one line per Exp (mean +- s.e. over its seeds)."""
+    plt = _plt()
+    rows, drawn = [], 0
+    fig, axes = plt.subplots(1, len(panels), figsize=(5.2 * len(panels), 4.2), squeeze=False)
+    for ax, (title, exps) in zip(axes[0], panels):
+        for exp in exps:
+            cs = curves(data.dirs(exp), column)
+            if not cs:
+                continue
+            grid, mean, se, n = mean_se(cs)
+            env = exp.run_env(data.args.env_map)
+            for g, m, s in zip(grid, mean, se):
+                rows.append([title, env, exp.algo, exp.subgoal, int(g), m, s, n,
+                             int(data.finished(exp))])
+            line, = ax.plot(grid, mean, label=f"{NAMES[exp.algo]} (n={n})")
+            if n > 1:
+                ax.fill_between(grid, mean - se, mean + se, color=line.get_color(), alpha=0.25)
+            drawn += 1
+        if hline is not None and hline[0] == title:
+            ax.axhline(hline[1], ls="--", color="k", label=hline[2])
+        ax.set_title(title)
+        ax.set_xlabel("episodes")
+        ax.set_ylabel(ylabel)
+        positive = [y[y > 0] for y in (np.asarray(l.get_ydata(), float) for l in ax.get_lines())]
+        positive = np.concatenate(positive) if positive else np.zeros(0)
+        if log and positive.size:   # zeros (an option never executed) fall below the axis
+            ax.set_yscale("log")
+            ax.set_ylim(bottom=positive.min() / 3, top=max(1.0, positive.max() * 1.5))
+        if column.endswith("success_rate"):
+            ax.set_ylim(-0.03, 1.03)
+        ax.grid(alpha=0.3)
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=8)
+    if not drawn:
+        plt.close(fig)
+        return None
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    _write_csv(csv_path, ["panel", "env", "algo", "subgoal", "episodes", "mean", "se", "n_seeds",
+                          "finished"], rows)
+    return path
+
+
+MAZE_TITLES = {"u_maze": "U-maze", "medium": "large maze (medium)", "four_rooms": "four rooms",
+               "ant_reacher": "Ant-Reacher"}
+
+
+def _maze_title(maze: str, env_map: dict) -> str:
+    run = env_map.get(maze, maze)
+    title = MAZE_TITLES.get(maze, maze)
+    return title if run == maze else f"{title} (as {run})"
+
+
+def fig6(data: Data, out: str) -> Optional[str]:
+    exps = [e for e in data.figs["6"] if e.tag != "long"]
+    mazes = list(dict.fromkeys(e.env for e in exps))
+    panels = [(_maze_title(m, data.args.env_map), [e for e in exps if e.env == m]) for m in mazes]
+    hline = None
+    long = [e for e in data.figs["6"] if e.tag == "long"]
+    if long:
+        cs = curves(data.dirs(long[0]), "eval/success_rate")
+        if cs:
+            hline = (_maze_title("u_maze", data.args.env_map), float(finals(cs).mean()),
+                     f"TD3+HER after {long[0].episodes} episodes (n={len(cs)})")
+    path = curve_figure(data, panels, "eval/success_rate", "success rate from the start",
+                        os.path.join(out, "fig6.png"), os.path.join(out, "fig6.csv"), hline=hline)
+    if path and hline is not None:
+        with open(os.path.join(out, "fig6.csv"), "a", newline="") as f:
+            csv.writer(f).writerow([hline[0], long[0].run_env(data.args.env_map), "td3_her_long",
+                                    "robust", long[0].episodes, hline[1], "", "", ""])
+    return path
+
+
+def fig5(data: Data, out: str) -> Optional[str]:
+    return curve_figure(data, [(_maze_title("u_maze", data.args.env_map), data.figs["5"])],
+                        "options/chain_probability", "chain probability (eq. 3)",
+                        os.path.join(out, "fig5.png"), os.path.join(out, "fig5.csv"), log=True)
+
+
+def figA3(data: Data, out: str) -> Optional[str]:
+    return curve_figure(data, [(_maze_title("u_maze", data.args.env_map), data.figs["A3"])],
+                        "options/num_options", "number of options (incl. global)",
+                        os.path.join(out, "figA3.png"), os.path.join(out, "figA3.csv"))
+
+
+# ------------------------------------------------------------------------------------------------
+# Figure 4 and appendix Figure 1: states from checkpoints (JAX from here on)
+# ------------------------------------------------------------------------------------------------
+def _cached(path: str, step: int):
+    if os.path.isfile(path):
+        z = np.load(path)
+        if int(z["step"]) == step:
+            return {k: z[k] for k in z.files}
+    return None
+
+
+def corner_eval(seed_dir: str, step: int) -> dict:
+    """Episodes from the four corners with the evaluation policy (as `eval --starts`), cached
+    in SEED_DIR/reproduce_fig4.npz for the checkpoint `step`."""
+    path = os.path.join(seed_dir, "reproduce_fig4.npz")
+    got = _cached(path, step)
+    if got is not None:
+        return got
+    import jax
+
+    from dscpp_jax.cli import load_run
+    from dscpp_jax.evaluate import evaluate
+    cfg, state = load_run(seed_dir, step)
+    _, res = evaluate(state, jax.random.PRNGKey(0), starts=np.asarray(CORNERS))
+    steps = np.asarray(res.steps)
+    success = np.asarray(res.success).astype(int)
+    out = dict(step=np.asarray(step), episodes=np.asarray(int(state.counters.episodes)),
+               steps=steps, success=success,
+               # sparse reward: -1 a step, 0 on the step that reaches the goal
+               ret=-(steps - success).astype(float),
+               xy=np.asarray(res.xy), option=np.asarray(res.option),
+               max_options=np.asarray(cfg.max_options))
+    np.savez(path, **out)
+    return out
+
+
+def fig4(data: Data, out: str) -> Optional[str]:
+    from matplotlib.collections import LineCollection
+
+    from dscpp_jax.plots import _draw_maze, _layout
+    from dscpp_jax.run_logging import load_config
+    exps = data.figs["4"]
+    results, rows = {}, []
+    for exp in exps:
+        per_seed = []
+        for d in data.dirs(exp):
+            steps = checkpoint_steps(data.info[exp]["dir"])
+            if not steps:
+                continue
+            r = corner_eval(d, steps[-1])
+            per_seed.append((d, r))
+            for (sx, sy), st, su, rt in zip(CORNERS, r["steps"], r["success"], r["ret"]):
+                rows.append([exp.subgoal, exp.run_env(data.args.env_map), exp.algo,
+                             os.path.basename(d), int(r["step"]), int(r["episodes"]), sx, sy,
+                             int(su), int(st), float(rt), int(data.finished(exp))])
+        if per_seed:
+            results[exp] = per_seed
+    if not results:
+        return None
+    plt = _plt()
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.6))
+    for ax, exp in zip(axes[:2], exps):
+        ax.set_title(f"{NAMES[exp.algo]}, {exp.subgoal} subgoals")
+        if exp not in results:
+            ax.text(0.5, 0.5, "not run", ha="center", transform=ax.transAxes)
+            continue
+        d, r = results[exp][0]
+        cfg = load_config(d)
+        _draw_maze(ax, _layout(cfg))
+        cmap = plt.get_cmap("tab10" if int(r["max_options"]) <= 10 else "tab20")
+        for e in range(r["xy"].shape[1]):
+            L = int(r["steps"][e])
+            seg = np.stack([r["xy"][:L, e], r["xy"][1:L + 1, e]], 1)
+            opt = r["option"][:L, e]
+            ax.add_collection(LineCollection(seg, colors=[cmap(int(o) % cmap.N) if o >= 0 else
+                                                          "0.5" for o in opt], linewidths=1.8,
+                                             zorder=3))
+            ax.plot(*r["xy"][0, e], "s", color="k", ms=4, zorder=4)
+        ax.set_xlabel(f"x   ({os.path.basename(d)}, {int(r['episodes'])} episodes; colour: option)")
+    ax = axes[2]
+    labels, means, ses = [], [], []
+    for exp in exps:
+        if exp not in results:
+            continue
+        per = np.array([r["ret"].mean() for _, r in results[exp]])
+        labels.append(f"{exp.subgoal}\n(n={len(per)})")
+        means.append(per.mean())
+        ses.append(per.std(ddof=1) / np.sqrt(len(per)) if len(per) > 1 else 0.0)
+    ax.bar(labels, means, yerr=ses, capsize=6, color=["tab:blue", "tab:orange"][:len(labels)])
+    ax.set_ylabel("average reward from the four corners")
+    ax.set_title("higher is better (mean ± s.e. over seeds)")
+    ax.grid(alpha=0.3, axis="y")
+    fig.tight_layout()
+    path = os.path.join(out, "fig4.png")
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    _write_csv(os.path.join(out, "fig4.csv"),
+               ["subgoal", "env", "algo", "seed_dir", "checkpoint", "episodes_trained", "start_x",
+                "start_y", "success", "steps", "return", "finished"], rows)
+    return path
+
+
+def goal_regions(seed_dir: str, step: int, resolution: int) -> dict:
+    """The goal option's optimistic and pessimistic decision values on a grid over the arena at
+    checkpoint `step`, cached in SEED_DIR/reproduce_a1_<step>.npz."""
+    path = os.path.join(seed_dir, f"reproduce_a1_{step}.npz")
+    got = _cached(path, step)
+    if got is not None and got["opt"].shape[0] == resolution:
+        return got
+    import jax
+    import jax.numpy as jnp
+
+    from dscpp_jax import svm
+    from dscpp_jax.cli import load_run
+    from dscpp_jax.plots import _layout
+    cfg, state = load_run(seed_dir, step)
+    xmin, xmax, ymin, ymax = _layout(cfg).bounds
+    gx, gy = np.meshgrid(np.linspace(xmin, xmax, resolution), np.linspace(ymin, ymax, resolution))
+    grid = jnp.asarray(np.stack([gx.ravel(), gy.ravel()], -1), jnp.float32)
+    clf = jax.tree_util.tree_map(lambda a: a[1], state.chain.clf)   # row 1: the goal option
+    dec = jax.jit(svm.decision_function)
+    opt = np.asarray(dec(clf.optimistic, grid)).reshape(gx.shape)
+    pes = np.asarray(dec(clf.pessimistic, grid)).reshape(gx.shape)
+    if not bool(clf.optimistic_fitted):
+        opt = np.full(gx.shape, -1.0)
+    if not bool(clf.pessimistic_fitted):
+        pes = np.full(gx.shape, -1.0)
+    out = dict(step=np.asarray(step), episodes=np.asarray(int(state.counters.episodes)),
+               gx=gx, gy=gy, opt=opt, pes=pes)
+    np.savez(path, **out)
+    return out
+
+
+def _pick(steps: list, k: int) -> list:
+    if len(steps) <= k:
+        return steps
+    return [steps[i] for i in sorted(set(np.linspace(0, len(steps) - 1, k).round().astype(int)))]
+
+
+def figA1(data: Data, out: str) -> Optional[str]:
+    from dscpp_jax.plots import _draw_maze, _layout
+    from dscpp_jax.run_logging import load_config
+    exps = [e for e in data.figs["A1"] if data.dirs(e)]
+    if not exps:
+        return None
+    k = data.args.a1_panels
+    plt = _plt()
+    fig, axes = plt.subplots(len(exps), k, figsize=(3.6 * k, 3.6 * len(exps)), squeeze=False)
+    rows = []
+    for i, exp in enumerate(exps):
+        d = data.dirs(exp)[0]
+        cfg = load_config(d)
+        layout = _layout(cfg)
+        steps = _pick(checkpoint_steps(data.info[exp]["dir"]), k)
+        for ax in axes[i]:
+            ax.axis("off")
+        for j, step in enumerate(steps):
+            r = goal_regions(d, step, data.args.a1_resolution)
+            cell = (r["gx"][0, 1] - r["gx"][0, 0]) * (r["gy"][1, 0] - r["gy"][0, 0])
+            a_opt, a_pes = float((r["opt"] > 0).sum() * cell), float((r["pes"] > 0).sum() * cell)
+            rows.append([exp.algo, exp.run_env(data.args.env_map), os.path.basename(d), step,
+                         int(r["episodes"]), a_opt, a_pes, int(data.finished(exp))])
+            ax = axes[i, j]
+            ax.axis("on")
+            _draw_maze(ax, layout)
+            if (r["opt"] > 0).any():
+                ax.contourf(r["gx"], r["gy"], (r["opt"] > 0).astype(float), levels=[0.5, 1.5],
+                            colors=["darkred"], alpha=0.5, zorder=2)
+            if (r["pes"] > 0).any() and (r["pes"] < 0).any():
+                ax.contour(r["gx"], r["gy"], r["pes"], levels=[0.0], colors="k", linewidths=1.5,
+                           zorder=4)
+            ax.set_title(f"{NAMES[exp.algo]}: iteration {step}, {int(r['episodes'])} episodes",
+                         fontsize=9)
+    fig.suptitle("goal option: optimistic region (red), pessimistic contour (black)"
+                 + (" (DSC: one classifier)" if any(e.algo == "dsc" for e in exps) else ""),
+                 fontsize=10)
+    fig.tight_layout()
+    path = os.path.join(out, "figA1.png")
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    _write_csv(os.path.join(out, "figA1.csv"),
+               ["algo", "env", "seed_dir", "checkpoint", "episodes", "optimistic_area",
+                "pessimistic_area", "finished"], rows)
+    return path
+
+
+# ------------------------------------------------------------------------------------------------
+# Claims
+# ------------------------------------------------------------------------------------------------
+def _fmt(x: np.ndarray) -> str:
+    if x.size == 0:
+        return "-"
+    if x.size == 1:
+        return f"{x.mean():.3g}"
+    return f"{x.mean():.3g} ± {x.std(ddof=1) / np.sqrt(x.size):.2g}"
+
+
+def _status(ok: bool, complete) -> str:
+    if not complete:
+        return "incomplete (runs missing or not finished)"
+    return "reproduced" if ok else "not reproduced"
+
+
+def claims(data: Data, args, figures: dict) -> list:
+    """[(figure, claim, measured, status)] for every claim of the paper."""
+    fig6_exps = [e for e in data.figs.get("6", []) if e.tag != "long"]
+
+    def final(exp, col="eval/success_rate", reduce="last"):
+        cs = curves(data.dirs(exp), col)
+        if not cs:
+            return None
+        return finals(cs) if reduce == "last" else np.array([c[1].max() for c in cs])
+
+    def where(exp):
+        return f"{exp.run_env(args.env_map)}, {len(data.dirs(exp))} seeds"
+
+    out = []
+    # --- Figure 6 --------------------------------------------------------------------------
+    mazes = list(dict.fromkeys(e.env for e in fig6_exps))
+    for maze in mazes or MAZES:
+        exps = {e.algo: e for e in fig6_exps if e.env == maze}
+        got = {a: final(e) for a, e in exps.items()}
+        got = {a: v for a, v in got.items() if v is not None}
+        claim = f"{maze}: MB-DSC++ and MF-DSC++ outperform every baseline (final success)"
+        if "6" not in data.figs or not got:
+            out.append(("6", claim, "-", "not run"))
+            continue
+        ours = [a for a in ("mb_dscpp", "mf_dscpp") if a in got]
+        base = [a for a in ("td3_her", "mb_flat", "mb_flat_value", "dsc") if a in got]
+        measured = "; ".join(f"{NAMES[a]} {_fmt(v)}" for a, v in got.items()) + \
+            f" ({exps[next(iter(got))].run_env(args.env_map)}, success at the end)"
+        complete = set(got) >= set(FIG6_ALGOS) and all(data.finished(e) for e in exps.values())
+        ok = bool(ours) and all(got[o].mean() > got[b].mean() for o in ours for b in base)
+        out.append(("6", claim, measured, _status(ok, complete)))
+    for maze in mazes or MAZES:
+        exps = {e.algo: e for e in fig6_exps if e.env == maze and e.algo in ("mb_flat",
+                                                                               "mb_flat_value")}
+        got = {a: final(e, reduce="max") for a, e in exps.items()}
+        got = {a: v for a, v in got.items() if v is not None}
+        claim = f"{maze}: both flat model-based baselines never exceed 0 % success"
+        if not got:
+            out.append(("6", claim, "-", "not run"))
+            continue
+        measured = "; ".join(f"{NAMES[a]} best eval {_fmt(v)} ({where(exps[a])})"
+                             for a, v in got.items())
+        ok = all((v == 0).all() for v in got.values())
+        out.append(("6", claim, measured, _status(ok, len(got) == 2 and all(
+            data.finished(e) for e in exps.values()))))
+    for algo in ("dsc", "td3_her"):
+        exps = {e.env: e for e in fig6_exps if e.algo == algo}
+        got = {m: final(e, reduce="max") for m, e in exps.items()}
+        got = {m: v for m, v in got.items() if v is not None}
+        claim = (f"{NAMES[algo]} reaches > 0 % success on U-maze only" if algo == "dsc" else
+                 "TD3+HER stays at 0 % on the large maze and four rooms (it rose above 0 only on "
+                 "U-maze, after 12,000 episodes)")
+        if not got:
+            out.append(("6", claim, "-", "not run"))
+            continue
+        measured = "; ".join(f"{m}: best eval {_fmt(v)} ({where(exps[m])})" for m, v in got.items())
+        ok = all(((v > 0).any() if m == "u_maze" else (v == 0).all()) for m, v in got.items())
+        if algo == "td3_her":   # the paper: TD3 needs far more episodes to get above 0 on U-maze
+            ok = all((v == 0).all() for m, v in got.items() if m != "u_maze")
+        complete = set(got) >= set(MAZES) and all(data.finished(e) for e in exps.values())
+        out.append(("6", claim, measured, _status(ok, complete)))
+    long = [e for e in data.figs.get("6", []) if e.tag == "long"]
+    claim = "TD3+HER after 12,000 episodes on U-maze: success > 0 (dashed line)"
+    v = final(long[0]) if long else None
+    if v is None:
+        out.append(("6", claim, "-", "not run (train it with --long-td3)"))
+    else:
+        out.append(("6", claim, f"{_fmt(v)} ({where(long[0])}, {long[0].episodes} episodes)",
+                    _status(bool(v.mean() > 0), data.finished(long[0]))))
+    # --- Figure 5 --------------------------------------------------------------------------
+    exps = {e.algo: e for e in data.figs.get("5", [])}
+    got = {a: final(e, "options/chain_probability") for a, e in exps.items()}
+    got = {a: v for a, v in got.items() if v is not None}
+    claim = ("U-maze: chain probability (eq. 3) rises with each proposal: "
+             "DSC < + dual classifiers < MF-DSC++ < MB-DSC++")
+    if not got:
+        out.append(("5", claim, "-", "not run"))
+    else:
+        order = [a for a in FIG5_ALGOS if a in got]
+        measured = "; ".join(f"{NAMES[a]} {_fmt(got[a])}" for a in order) + \
+            f" ({exps[order[0]].run_env(args.env_map)}, at the end)"
+        ok = all(got[a].mean() < got[b].mean() for a, b in zip(order, order[1:]))
+        complete = len(order) == 4 and all(data.finished(e) for e in exps.values())
+        out.append(("5", claim, measured, _status(ok, complete)))
+    # --- Figure 4 --------------------------------------------------------------------------
+    claim = ("Ant-Reacher, after 1,000 episodes: DP subgoals collect a higher average reward "
+             "from the four corners than robust subgoals")
+    path = os.path.join(args.out, "fig4.csv")
+    rets = {}
+    if figures.get("4") and os.path.isfile(path):
+        with open(path) as f:
+            for r in csv.DictReader(f):
+                rets.setdefault(r["subgoal"], {}).setdefault(r["seed_dir"], []).append(
+                    float(r["return"]))
+    if not rets:
+        out.append(("4", claim, "-", "not run"))
+    else:
+        per = {s: np.array([np.mean(v) for v in d.values()]) for s, d in rets.items()}
+        e4 = data.figs["4"]
+        measured = "; ".join(f"{s}: {_fmt(v)}" for s, v in per.items()) + \
+            f" ({e4[0].run_env(args.env_map)}, {NAMES[e4[0].algo]}, {e4[0].episodes} episodes)"
+        ok = "dp" in per and "robust" in per and per["dp"].mean() > per["robust"].mean()
+        out.append(("4", claim, measured, _status(ok, len(per) == 2 and all(
+            data.finished(e) for e in e4))))
+    # --- Appendix Figure 1 -----------------------------------------------------------------
+    claim = ("Ant-Reacher goal option: DSC's initiation region ends smaller than DSC++'s; DSC++'s "
+             "optimistic region shrinks while its pessimistic region grows")
+    path = os.path.join(args.out, "figA1.csv")
+    areas = {}
+    if figures.get("A1") and os.path.isfile(path):
+        with open(path) as f:
+            for r in csv.DictReader(f):
+                areas.setdefault(r["algo"], []).append((int(r["episodes"]),
+                                                        float(r["optimistic_area"]),
+                                                        float(r["pessimistic_area"])))
+    if not areas:
+        out.append(("A1", claim, "-", "not run"))
+    else:
+        ea = data.figs["A1"]
+        ours = ea[-1].algo
+        txt = []
+        for a, v in areas.items():
+            v = sorted(v)
+            txt.append(f"{NAMES[a]}: optimistic {v[0][1]:.3g} -> {v[-1][1]:.3g}, pessimistic "
+                       f"{v[0][2]:.3g} -> {v[-1][2]:.3g} (episodes {v[0][0]} -> {v[-1][0]})")
+        measured = "; ".join(txt) + f" (area, {ea[0].run_env(args.env_map)}, one seed)"
+        ok = False
+        if "dsc" in areas and ours in areas and ours != "dsc":
+            d, o = sorted(areas["dsc"]), sorted(areas[ours])
+            # from the first checkpoint where the goal option had been fitted
+            first = next((v for v in o if v[1] > 0 or v[2] > 0), o[0])
+            ok = d[-1][2] < o[-1][2] and o[-1][1] <= first[1] and o[-1][2] >= first[2]
+        out.append(("A1", claim, measured, _status(ok, len(areas) == 2 and all(
+            data.finished(e) for e in ea))))
+    # --- Appendix Figure 2 -----------------------------------------------------------------
+    out.append(("A2", "MF-DSC++ on U-maze learns better with one shared critic than with one "
+                "critic per option", "-", f"not run: {A2_NOTE}"))
+    # --- Appendix Figure 3 -----------------------------------------------------------------
+    exps = {e.algo: e for e in data.figs.get("A3", [])}
+    got = {a: final(e, "options/num_options") for a, e in exps.items()}
+    got = {a: v for a, v in got.items() if v is not None}
+    claim = "U-maze: baseline DSC needs more options than the DSC++ variants"
+    if not got:
+        out.append(("A3", claim, "-", "not run"))
+    else:
+        measured = "; ".join(f"{NAMES[a]} {_fmt(v)}" for a, v in got.items()) + \
+            f" ({next(iter(exps.values())).run_env(args.env_map)}, options at the end, incl. " \
+            "global)"
+        ours = [a for a in ("mf_dscpp", "mb_dscpp") if a in got]
+        ok = "dsc" in got and bool(ours) and all(got["dsc"].mean() > got[a].mean() for a in ours)
+        complete = "dsc" in got and len(ours) == 2 and all(data.finished(e) for e in exps.values())
+        out.append(("A3", claim, measured, _status(ok, complete)))
+    return out
+
+
+def _shown_path(path: str) -> str:
+    rel = os.path.relpath(path, ROOT)
+    return path if rel.startswith("..") else rel
+
+
+def write_readme(data: Data, args, figures: dict, status: dict) -> str:
+    path = os.path.join(args.out, "README.md")
+    cmd = "python experiments/reproduce.py " + " ".join(args.argv)
+    anything = any(data.dirs(e) for e in data.info)
+    lines = [
+        "# The paper's figures, reproduced",
+        "",
+        "Generated by `experiments/reproduce.py` from the runs under "
+        f"`{_shown_path(args.runs_root)}`; "
+        + ("every number below comes from those runs' `metrics.csv` and checkpoints. Made with "
+           "(re-run it to continue unfinished runs and refresh this page):" if anything else
+           "**no run exists there yet, so every claim below is *not run*.** This page was "
+           "made with:"),
+        "",
+        f"    {cmd.strip()}",
+        "",
+        "Everything at the paper's protocol (on a GPU host; re-run the same command to "
+        "continue): `make reproduce FIG=all ARGS='--time-budget 3600 --long-td3'`.",
+        "",
+        f"Protocol this call asked for: preset `{args.preset}`, seeds {args.seeds}, "
+        f"{args.episodes} episodes "
+        f"(Figure 4 / appendix Figure 1: {args.fig4_episodes} on Ant-Reacher), success from the "
+        "task start, mean ± standard error over seeds"
+        + (f"; overrides: {', '.join(args.set)}" if args.set else "")
+        + (f"; envs replaced: {', '.join(f'{k} -> {v}' for k, v in args.env_map.items())}"
+           if args.env_map else "") + ".",
+        "A claim is *reproduced* when the measured means order as the paper says (criteria in "
+        "`experiments/reproduce.py`, `claims`); *incomplete* while some of its runs have not "
+        "reached their schedule; *not run* when no run holds data for it.",
+        "",
+        "| figure | paper's claim | measured | status |",
+        "|---|---|---|---|",
+    ]
+    for fig, claim, measured, st in claims(data, args, figures):
+        lines.append(f"| {fig} | {claim} | {measured} | {st} |")
+    lines += ["", "Files:", ""]
+    for fig in FIGS:
+        p = figures.get(fig)
+        if p:
+            csvp = os.path.splitext(os.path.basename(p))[0] + ".csv"
+            lines.append(f"- Figure {fig}: [`{os.path.basename(p)}`]({os.path.basename(p)}), "
+                         f"numbers in [`{csvp}`]({csvp})")
+        elif fig == "A2":
+            lines.append(f"- Figure A2: {A2_NOTE}")
+        else:
+            lines.append(f"- Figure {fig}: not drawn (no runs yet)")
+    if status:
+        lines += ["", "Runs (this call):", ""]
+        lines += [f"- `{k}`: {v}" for k, v in status.items()]
+    with open(path, "w") as f:
+        f.write("\n".join(lines) + "\n")
+    return path
+
+
+# ------------------------------------------------------------------------------------------------
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--fig", default="all", help="4, 5, 6, A1, A2, A3 or all (comma separated)")
+    p.add_argument("--seeds", default="0-4", help="seeds of every group (default 0-4: 5 seeds)")
+    p.add_argument("--episodes", "--total-episodes", dest="episodes", type=int, default=2001,
+                   help="episodes per run of Figures 5, 6 and A3 (default 2001)")
+    p.add_argument("--total-steps", dest="total_steps", type=int, default=None,
+                   help="also stop each run at this many env steps (default: loose enough that "
+                        "the episode budget binds)")
+    p.add_argument("--preset", default="fast", choices=("fast", "paper"))
+    p.add_argument("--algos", default=None,
+                   help="only these algorithms (comma separated; default: all the figures name)")
+    p.add_argument("--mazes", default=None,
+                   help="Figure 6's mazes (default u_maze,medium,four_rooms)")
+    p.add_argument("--env-map", dest="env_map_list", action="append", default=[],
+                   metavar="PAPER=ENV", help="train ENV where the paper uses PAPER, e.g. "
+                   "u_maze=point_u_maze (repeatable)")
+    p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                   help="Config override for every run (repeatable)")
+    p.add_argument("--long-td3", action="store_true",
+                   help="also train TD3+HER on U-maze for --long-td3-episodes (Figure 6's "
+                        "dashed line)")
+    p.add_argument("--long-td3-episodes", type=int, default=12000)
+    p.add_argument("--fig4-algo", default="mb_dscpp", help="Figure 4's algorithm (and A1's DSC++)")
+    p.add_argument("--fig4-episodes", type=int, default=1000)
+    p.add_argument("--a1-seeds", default="0", help="seeds of appendix Figure 1's runs")
+    p.add_argument("--a1-keep", type=int, default=1000,
+                   help="checkpoints appendix Figure 1's runs keep (default: all)")
+    p.add_argument("--a1-panels", type=int, default=4, help="checkpoints shown per algorithm")
+    p.add_argument("--a1-resolution", type=int, default=80)
+    p.add_argument("--runs-root", default=os.path.join("runs", "paper"))
+    p.add_argument("--out", default=os.path.join("experiments", "results", "paper"))
+    p.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
+                   help="per train call: checkpoint and stop after this long (run again to go on)")
+    p.add_argument("--jobs", type=int, default=1,
+                   help="train calls at once (default 1; with --gpus at most one per GPU)")
+    p.add_argument("--gpus", default=None, metavar="LIST",
+                   help="e.g. 0,1,2,3: each train call gets one of these GPUs "
+                        "(CUDA_VISIBLE_DEVICES); a group's seeds then share that GPU")
+    p.add_argument("--report-only", action="store_true",
+                   help="train nothing: figures, CSVs and README from the runs that exist")
+    p.add_argument("--dry-run", action="store_true", help="print the train commands only")
+    p.add_argument("--deterministic", action=argparse.BooleanOptionalAction, default=True,
+                   help="deterministic GPU kernels in train and in the evaluations here")
+    p.add_argument("--compile-cache", default=None, metavar="DIR")
+    return p
+
+
+def main(argv: Optional[list] = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    args = build_parser().parse_args(argv)
+    args.argv = argv
+    try:
+        args.env_map = dict(kv.split("=", 1) for kv in args.env_map_list)
+        figs = plan(args)
+        from dscpp_jax.seed_group import parse_seeds
+        parse_seeds(args.seeds)
+        parse_seeds(args.a1_seeds)
+    except ValueError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    if args.runs_root and not os.path.isabs(args.runs_root):
+        args.runs_root = os.path.join(ROOT, args.runs_root)
+    if not os.path.isabs(args.out):
+        args.out = os.path.join(ROOT, args.out)
+    if "A2" in figs:
+        print(f"[reproduce] A2: skipped: {A2_NOTE}", flush=True)
+    status = {} if args.report_only else train_all(args, figs)
+    if args.dry_run:
+        return 0
+    # figures: JAX (Figure 4, A1) only now, after every train call has given the devices back
+    from dscpp_jax.cli import use_compile_cache, use_deterministic_ops
+    use_deterministic_ops(args.deterministic)
+    use_compile_cache(args.compile_cache)
+    os.makedirs(args.out, exist_ok=True)
+    # the report covers every figure whose runs exist, whichever this call trained
+    everything = plan(argparse.Namespace(**{**vars(args), "fig": "all", "long_td3": True}))
+    data = Data(args, everything)
+    makers = {"6": fig6, "5": fig5, "A3": figA3, "4": fig4, "A1": figA1}
+    figures = {}
+    for fig in FIGS:
+        if fig in makers:
+            path = makers[fig](data, args.out)
+            figures[fig] = path
+            if fig in figs or path:
+                print(f"[reproduce] figure {fig}: {path or 'no runs yet'}", flush=True)
+    readme = write_readme(data, args, figures, status)
+    print(f"[reproduce] {readme}")
+    return 1 if any(str(v).startswith(("failed", "mismatch")) for v in status.values()) else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
