@@ -582,6 +582,14 @@ def cmd_train(args) -> int:
 
     from dscpp_jax.evaluate import evaluate
     ev, res = evaluate(state, num_episodes=cfg.eval_episodes)
+    final = dict(ev, iteration=int(state.counters.iteration),
+                 env_steps=int(state.counters.env_steps),
+                 episodes_trained=int(state.counters.episodes), seed=cfg.seed)
+    try:   # the same file a seed group writes for each seed, and `eval` for a checkpoint
+        with open(os.path.join(run_dir, "eval.json"), "w") as f:
+            json.dump(final, f, indent=2)
+    except OSError as e:
+        raise _write_error(run_dir, e, "write eval.json") from None
     if args.plot:
         from dscpp_jax import plots
         out = os.path.join(run_dir, "plots")
