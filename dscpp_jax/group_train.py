@@ -285,9 +285,11 @@ def train_group(cfg: Config, seeds: Sequence[int], group_dir: Optional[str] = No
                     **ib, options=_range(options), steps_per_s=f"{rate:.0f}", refresh=False)
             elif lead and (ev is not None or (ib and group_it % INBAND_LINE_EVERY == 0)):
                 ib_text = f" inband_success mean {ib['inband_mean']}" if ib else ""
+                ev_text = (f"eval_success mean {np.nanmean(last_eval):.2f} min "
+                           f"{np.nanmin(last_eval):.2f}" if np.isfinite(last_eval).any()
+                           else "eval_success -")
                 print(f"[{time.time() - t_start:7.0f}s] it {group_it} env_steps/seed "
-                      f"{int(env_steps.max())} episodes {int(episodes.sum())} eval_success mean "
-                      f"{np.nanmean(last_eval):.2f} min {np.nanmin(last_eval):.2f}{ib_text} "
+                      f"{int(env_steps.max())} episodes {int(episodes.sum())} {ev_text}{ib_text} "
                       f"options {_range(options)} steps/s (all seeds) {rate:.0f}", flush=True)
             if cfg.checkpoint_every and group_it % cfg.checkpoint_every == 0:
                 ckpt.save(group_it, states)

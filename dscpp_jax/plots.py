@@ -155,6 +155,8 @@ def _curve(run_dir: str, column: str, x_column: str = "env_steps"):
     x = np.asarray(m[x_column], float)
     y = np.asarray(m[column], float)
     ok = np.isfinite(y) & np.isfinite(x)
+    if column.startswith("inband/") and "inband/window" in m:   # none finished yet: no figure
+        ok &= np.asarray(m["inband/window"], float) > 0
     return (x[ok], y[ok]) if ok.any() else None
 
 
@@ -216,8 +218,9 @@ def _si(v: float) -> str:
 
 
 def plot_curves(run_dirs: Sequence[str], path: str, group: bool = True) -> str:
-    """Eval success from the start vs env steps, episodes and wall-clock, and the number of
-    options and training-episode success vs env steps. Runs that differ only in the seed are
+    """Eval success from the start vs env steps, episodes and wall-clock (and, dashed, in-band
+    success where the runs logged it), and the number of options and training-episode success
+    vs env steps. Runs that differ only in the seed are
     grouped: mean +- standard error on a common grid (see `_group_runs`). An entry "LABEL=RUN_DIR"
     puts that run in the group LABEL instead (runs with the same label are averaged; the path is
     what follows the last "=")."""
@@ -248,19 +251,25 @@ def plot_curves(run_dirs: Sequence[str], path: str, group: bool = True) -> str:
     xlabels = {"env_steps": "env steps", "episodes": "training episodes",
                "wall_clock": "wall-clock (s)"}
     fig, axes = plt.subplots(1, len(panels), figsize=(5 * len(panels), 4 + 0.3 * ((len(groups) + 1) // 2)))
+    colors = {name: f"C{i % 10}" for i, name in enumerate(groups)}
     for (xcol, col, ylabel), ax in zip(panels, axes):
+        # runs with in-band evaluation also show its success, every iteration, dashed
+        cols = [(col, "-", "")] + ([("inband/success_rate", "--", " in-band")]
+                                   if col == "eval/success_rate" else [])
         for name, runs in groups.items():
-            curves = [c for c in (_curve(r, col, xcol) for r in runs) if c is not None]
-            if not curves:
-                continue
-            xmax = min(c[0][-1] for c in curves)
-            grid = np.unique(np.concatenate([c[0][c[0] <= xmax] for c in curves]))
-            ys = np.stack([np.interp(grid, c[0], c[1]) for c in curves])
-            mean = ys.mean(0)
-            line, = ax.plot(grid, mean, label=f"{name} (n={len(curves)})")
-            if len(curves) > 1:
-                se = ys.std(0, ddof=1) / np.sqrt(len(curves))
-                ax.fill_between(grid, mean - se, mean + se, color=line.get_color(), alpha=0.25)
+            for c_col, style, suffix in cols:
+                curves = [c for c in (_curve(r, c_col, xcol) for r in runs) if c is not None]
+                if not curves:
+                    continue
+                xmax = min(c[0][-1] for c in curves)
+                grid = np.unique(np.concatenate([c[0][c[0] <= xmax] for c in curves]))
+                ys = np.stack([np.interp(grid, c[0], c[1]) for c in curves])
+                mean = ys.mean(0)
+                ax.plot(grid, mean, style, color=colors[name],
+                        label=f"{name}{suffix} (n={len(curves)})")
+                if len(curves) > 1:
+                    se = ys.std(0, ddof=1) / np.sqrt(len(curves))
+                    ax.fill_between(grid, mean - se, mean + se, color=colors[name], alpha=0.25)
         ax.set_xlabel(xlabels[xcol])
         if xcol == "env_steps":   # 200k, 1.5M: raw step counts run into each other
             from matplotlib.ticker import FuncFormatter, MaxNLocator

@@ -44,6 +44,10 @@ def test_cli_train_resume_interrupt_eval_plot(tmp_path, monkeypatch, capsys):
     assert m["eval/success_rate"][-1] == m["eval/success_rate"][-1]  # evaluated (not NaN)
     assert ck.latest_step(run) == 2
     assert any(f.startswith("events") for f in os.listdir(os.path.join(run, "tb")))
+    # the final evaluation is saved, as a seed group saves each seed's
+    final = json.load(open(os.path.join(run, "eval.json")))
+    assert final["iteration"] == 2 and final["seed"] == 0 and final["env_steps"] == 160
+    assert 0.0 <= final["eval/success_rate"] <= 1.0
 
     # resume continues from iteration 2; Ctrl-C during iteration 4 saves and exits cleanly
     calls = {"n": 0}

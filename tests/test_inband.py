@@ -1,6 +1,8 @@
 """In-band evaluation (`Config.inband_eval_envs`): evaluation episodes stepped inside
 `train_step` never touch learning state, report what `evaluate` reports for the same policy,
 checkpoint and resume exactly, work in seed groups, and compile once."""
+import os
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -267,6 +269,13 @@ def test_cli_logs_inband_metrics(tmp_path, capsys):
         g = read_metrics(f"{group}/s{s}")
         assert g["inband/episodes"] == [0.0, 0.0, 2.0]
     assert "inband_success mean" in capsys.readouterr().out
+    # the curves draw in-band success only from iterations where an in-band episode had finished
+    from dscpp_jax import plots
+    x, y = plots._curve(run, "inband/success_rate", "iteration")
+    assert x.tolist() == [3.0] and y.tolist() == m["inband/success_rate"][2:]
+    out = str(tmp_path / "plots")
+    assert main(["plot", "--curves-only", run, f"{group}/s0", f"{group}/s1", "--out", out]) == 0
+    assert os.path.getsize(os.path.join(out, "curves.png")) > 10_000
 
 
 def test_second_physics_step_path_equals_the_batched_one():
