@@ -139,10 +139,13 @@ def test_model_based_with_per_option_critics_is_rejected():
         tiny("mf_dscpp", shared_critic=1).validate()
 
 
-@pytest.mark.parametrize("subgoal", ["robust", "dp"])
-def test_mf_dscpp_per_option_trains_evaluates_and_resumes_exactly(tmp_path, subgoal):
-    cfg = tiny("mf_dscpp", shared_critic=False, subgoal=subgoal, warmup_episodes=0,
-               inband_eval_envs=2)
+_E2E = tiny("mf_dscpp", shared_critic=False, subgoal="dp", warmup_episodes=0, inband_eval_envs=2)
+
+
+def test_mf_dscpp_per_option_trains_evaluates_and_resumes_exactly(tmp_path):
+    """DP subgoals (each option's critic scores its subgoals and its row of the table) and in-band
+    evaluation on."""
+    cfg = _E2E
     s0 = T.init(jax.random.PRNGKey(3), cfg)
     assert T.init(jax.random.PRNGKey(3), cfg.override(shared_critic=True)).replay.data.option is None
     straight = s0
@@ -168,10 +171,21 @@ def test_mf_dscpp_per_option_trains_evaluates_and_resumes_exactly(tmp_path, subg
     summary, res = dscpp_jax.evaluate(straight, jax.random.PRNGKey(0), 2)
     assert 0.0 <= summary["eval/success_rate"] <= 1.0
     assert 0.0 <= float(m["inband/success_rate"]) <= 1.0
+    policy = dscpp_jax.make_policy(straight)
+    obs = straight.env_state.obs
+    ex, acts, opts = jax.jit(policy.step)(policy.init(obs), obs, jax.random.PRNGKey(1))
+    assert acts.shape == (obs.shape[0], 2) and np.all(np.isfinite(np.asarray(acts)))
+    tcfg = T.td3_config(straight.config)
+    for i, o in enumerate(np.asarray(opts)):    # each env acted with its option's actor
+        want = td3_act(tcfg, td3_option(straight.td3, o).actor_params, obs[i:i + 1],
+                       ex.subgoal[i:i + 1])
+        np.testing.assert_allclose(np.asarray(acts[i]), np.asarray(want[0]), rtol=1e-5, atol=1e-6)
 
 
 def test_seed_group_with_per_option_critics():
-    cfg = tiny("mf_dscpp", shared_critic=False, warmup_episodes=0)
+    """Each run of a seed group updates its options as if alone (the actor-step predicate is
+    reduced over both the seed and the option axis)."""
+    cfg = _E2E     # train_step is compiled for it already when the test above ran
     keys = jax.random.split(jax.random.PRNGKey(7), 2)
     states = jax.vmap(lambda k: T.init(k, cfg))(keys)
     states, vm = jax.jit(T.train_step_group_impl)(states)
