@@ -67,9 +67,10 @@ def use_deterministic_ops(on: bool) -> bool:
     """Ask XLA for deterministic GPU kernels (``XLA_FLAGS`` += ``--xla_gpu_deterministic_ops``).
 
     Without it, XLA's GPU scatter-adds (MuJoCo MJX's contact assembly among them) use atomics,
-    and two GPU runs of one seed drift apart from the first iteration; with it they repeat bit for
-    bit, at 1.1-1.3x the time per iteration on the ant (experiments/results/gpu_determinism).
-    CPU runs repeat either way. XLA reads the flag when JAX first touches a device, so this only
+    and two GPU runs of one seed drift apart from the first iteration; with it MJX runs repeat bit
+    for bit, at 1.1-1.3x the time per iteration on the ant (experiments/results/gpu_determinism).
+    MuJoCo Warp's own kernels use atomics that this flag does not reach, so Warp runs do not
+    repeat on a GPU either way. CPU runs repeat either way. XLA reads the flag when JAX first touches a device, so this only
     works before that; returns whether the flag is in effect for this process.
     """
     flags = os.environ.get("XLA_FLAGS", "")
@@ -729,7 +730,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="no progress bar; print one line per evaluation instead")
     t.add_argument("--plot", action="store_true",
                    help="at the end, write curves/trajectory/classifier plots to RUN_DIR/plots")
-    det_help = ("deterministic GPU kernels, so one seed gives the same run twice on a GPU (default; "
+    det_help = ("deterministic XLA GPU kernels, so one seed gives the same run twice on a GPU with "
+                "--physics jax (default; MuJoCo Warp does not repeat either way; "
                 "--no-deterministic runs 1.1-1.3x faster on the ant but not repeatably)")
     t.add_argument("--deterministic", action=argparse.BooleanOptionalAction, default=True,
                    help=det_help)

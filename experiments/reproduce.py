@@ -145,15 +145,9 @@ def plan(args) -> dict:
 # Group state on disk (no JAX)
 # ------------------------------------------------------------------------------------------------
 def _overrides(pairs) -> dict:
-    from dscpp_jax.config import parse_value
-    kw = {}
-    for p in pairs:
-        if "=" not in p:
-            raise ValueError(f"--set expects name=value, got {p!r}")
-        k, v = p.split("=", 1)
-        k = k.strip().replace("-", "_")
-        kw[k] = parse_value(k, v.strip())
-    return kw
+    """`--set name=value` pairs as the training command line reads them."""
+    from dscpp_jax.cli import _overrides as parse
+    return parse(list(pairs))
 
 
 def checkpoint_steps(group_dir: str) -> list:

@@ -365,3 +365,28 @@ def test_warp_group_seed_directory_evaluates(tmp_path):
     assert_trees_equal(one.td3, SG.seed_state(states, 1).td3)
     summary, _ = evaluate(one, jax.random.PRNGKey(0), 1)
     assert 0.0 <= summary["eval/success_rate"] <= 1.0
+
+
+def test_a_seed_finishing_early_waits_for_the_next_evaluation(tmp_path, monkeypatch):
+    """A seed that reaches its budget before the others is frozen; its last row waits for the
+    group's next evaluation (here the final one) instead of costing an evaluation of its own, and
+    holds the numbers its separate run logs when it stops."""
+    from dscpp_jax import group_train
+    budget = {0: TOTAL, 1: TOTAL // 2}   # seed 1 stops after 3 of seed 0's 6 iterations
+    monkeypatch.setattr(group_train, "_done", lambda cfg, steps, episodes: steps >= budget[cfg.seed])
+    calls = []
+    real_eval = SG.evaluate_group
+    monkeypatch.setattr(SG, "evaluate_group", lambda *a, **k: calls.append(1) or real_eval(*a, **k))
+    args = [a if a != "2" else "100" for a in TRAIN]   # --eval-every 100: no periodic evaluation
+    group = str(tmp_path / "g")
+    assert main(args + ["--seeds", "0-1", "--run-dir", group]) == 0
+    assert len(calls) == 1   # the final evaluation only
+    g1 = read_metrics(os.path.join(group, "s1"))
+    assert g1["iteration"] == [1.0, 2.0, 3.0]
+    final = json.load(open(os.path.join(group, "s1", "eval.json")))
+    assert g1["eval/success_rate"][-1] == final["eval/success_rate"] and final["iteration"] == 3
+    monkeypatch.setattr(SG, "evaluate_group", real_eval)
+    single = str(tmp_path / "s1")
+    assert main([a if a != str(TOTAL) else str(TOTAL // 2) for a in args]
+                + ["--seed", "1", "--run-dir", single]) == 0
+    _compare_metrics(single, os.path.join(group, "s1"))
