@@ -85,6 +85,9 @@ class Config:
                                        # every value under the 0 / -1 reward (not in the original)
     td3_action_l2: float = 0.0         # actor loss + L2 * mean(a^2) (OpenAI Baselines' HER: 1.0;
                                        # 0: off, as in the original)
+    shared_critic: bool = True         # one goal-conditioned TD3 for every option (the paper's
+                                       # DSC++); False: one TD3 per option slot, each learning
+                                       # from its own transitions (appendix Figure 2; model free)
     discount: float = 0.99
     replay_capacity: int = 1_000_000
     her_strategy: str = "final"        # final | future | none
@@ -307,6 +310,13 @@ class Config:
              f"inband_eval_envs finished in-band episodes)")
         need(self.buffer_len < self.option_timeout + 1,
              "buffer_len must be <= option_timeout")
+        need(isinstance(self.shared_critic, bool),
+             f"shared_critic={self.shared_critic!r} must be True or False")
+        need(self.shared_critic or not self.model_based,
+             f"shared_critic=False (one TD3 per option) is implemented for the model-free "
+             f"algorithms only ({', '.join(a for a in ALGOS if a not in MODEL_BASED_ALGOS)}): "
+             f"algo={self.algo!r} plans with MPC, whose value term uses one critic for all "
+             f"envs; set shared_critic=True or use algo='mf_dscpp'")
         return self
 
 

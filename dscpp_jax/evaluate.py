@@ -72,7 +72,8 @@ def _eval_impl(state: T.TrainState, key, num_episodes: int, starts=None, record:
         obs = es.obs
         ex = T._choose_options(config, env, chain, dp_table, td3, ex, obs, k_opt, active,
                                evaluation=True)
-        acts = T._policy_actions(config, td3, dyn, obs, ex.subgoal, k_act, False, 0.0)
+        acts = T._policy_actions(config, td3, dyn, obs, ex.subgoal, k_act, False, 0.0,
+                                 ex.option)
         nes = jax.vmap(env.step)(es, acts)
         nes = select_states(active, nes, es)
         ex = T._push_traj(ex, nes.obs[:, :2])
@@ -238,7 +239,8 @@ def make_policy(state: T.TrainState, deterministic: bool = True) -> Policy:
         ex = T._choose_options(config, env, chain, dp_table, td3, ex, obs, k_opt,
                                evaluation=deterministic)
         p = T.td3_random_prob(tcfg, state.counters.option_successes)
-        acts = T._policy_actions(config, td3, dyn, obs, ex.subgoal, k_act, not deterministic, p)
+        acts = T._policy_actions(config, td3, dyn, obs, ex.subgoal, k_act, not deterministic, p,
+                                 ex.option)
         ex = ex.replace(opt_steps=ex.opt_steps + 1)
         return ex, acts, ex.option
 

@@ -33,6 +33,8 @@ class TrajStep:
 
     ``seg_id`` identifies the option segment (int32 per env, incremented whenever a new option
     segment starts in that env); hindsight relabelling never crosses a change of ``seg_id``.
+    ``option`` (int32 per env) is the option that ran, stored only where every option learns its
+    own TD3 (``Config.shared_critic=False``); None (no leaf) otherwise. One segment is one option.
     """
 
     obs: jax.Array
@@ -40,6 +42,7 @@ class TrajStep:
     next_obs: jax.Array
     goal: jax.Array
     seg_id: jax.Array
+    option: Optional[jax.Array] = None
 
 
 @flax.struct.dataclass

@@ -39,7 +39,7 @@ pure function the caller builds, e.g. ``lambda s, g: td3_value(cfg, td3_state, s
 """
 from __future__ import annotations
 
-from typing import Callable
+from typing import Callable, Optional
 
 import jax
 import jax.numpy as jnp
@@ -152,14 +152,18 @@ def dp_outputs(chain: Chain, require_pessimistic: bool = True):
     return out_xy, out_mask
 
 
-def dp_value_table(chain: Chain, value_fn: Callable, gamma: float = 0.95, tol=None,
-                   goal_value: float = 0.0, require_pessimistic: bool = True) -> DPTable:
+def dp_value_table(chain: Chain, value_fn: Optional[Callable], gamma: float = 0.95, tol=None,
+                   goal_value: float = 0.0, require_pessimistic: bool = True,
+                   option_value_fn: Optional[Callable] = None) -> DPTable:
     """Algorithm 1 over the whole chain at once: V for all options x inputs x outputs in one
     ``value_fn`` call (K * P * P pairs), then the recursion from the goal option outward.
 
     value_fn(obs (M, obs_dim), goal (M, 2)) -> (M,) values; gamma: discount of the continuation;
     tol: same-state radius (default ``subgoal_tolerance``); goal_value: value of having reached the
-    task goal (terminal). Jit-able; value_fn is a closure (not traced data)."""
+    task goal (terminal). Jit-able; value_fn is a closure (not traced data).
+    option_value_fn(option (), obs (M, obs_dim), goal (M, 2)) -> (M,), given instead of
+    ``value_fn``: each option's values come from its own value function (one critic per option),
+    vmapped over the K options with M = P * P."""
     cfg = chain.cfg
     K, P, D = cfg.max_options, cfg.max_pos_traj, cfg.obs_dim
     tol = cfg.subgoal_tolerance if tol is None else tol
@@ -169,7 +173,14 @@ def dp_value_table(chain: Chain, value_fn: Callable, gamma: float = 0.95, tol=No
     out_xy, out_mask = dp_outputs(chain, require_pessimistic)
     obs = jnp.broadcast_to(chain.pos_obs[:, :, None, :], (K, P, P, D)).reshape(-1, D)
     goals = jnp.broadcast_to(out_xy[:, None, :, :], (K, P, P, 2)).reshape(-1, 2)
-    v = jnp.asarray(value_fn(obs, goals), jnp.float32).reshape(K, P, P)
+    if (value_fn is None) == (option_value_fn is None):
+        raise ValueError("dp_value_table: pass exactly one of value_fn and option_value_fn")
+    if option_value_fn is None:
+        v = jnp.asarray(value_fn(obs, goals), jnp.float32).reshape(K, P, P)
+    else:
+        v = jax.vmap(option_value_fn)(jnp.arange(K, dtype=jnp.int32), obs.reshape(K, P * P, D),
+                                      goals.reshape(K, P * P, 2))
+        v = jnp.asarray(v, jnp.float32).reshape(K, P, P)
     v = jnp.where(_near(in_xy[:, :, None, :], out_xy[:, None, :, :], tol), 0.0, v)
     pair_mask = in_mask[:, :, None] & out_mask[:, None, :]
     gamma = jnp.asarray(gamma, jnp.float32)

@@ -13,6 +13,11 @@ Typical use::
     state, metrics = update(cfg, state, batch, key)
     values = td3_value(cfg, state, obs, goal)          # min(Q1, Q2)(s, g, pi(s, g))
 
+One TD3 per option (``Config.shared_critic=False``): :func:`td3_init_per_option` stacks
+independent states on a leading option axis, :func:`td3_option` picks one out (per env under a
+vmap), and :func:`td3_updates_per_option` updates all of them in one vmap, each option on the
+replay entries it collected.
+
 All functions take the frozen config as their first (static) argument; jit them with
 ``static_argnums=0`` or call them inside your own jitted code.
 """
@@ -216,10 +221,21 @@ def td3_explore(
     ``cfg.exploration_noise`` (both times ``max_action``); either may be a traced scalar or an
     array broadcastable to the batch shape ``obs.shape[:-1]``.
     """
+    return td3_perturb(cfg, td3_act(cfg, actor_params, obs, goal), key, random_prob, noise_std)
+
+
+def td3_perturb(
+    cfg: TD3Config,
+    a: jax.Array,
+    key: jax.Array,
+    random_prob: Optional[jax.Array] = None,
+    noise_std: Optional[jax.Array] = None,
+) -> jax.Array:
+    """The exploration of :func:`td3_explore` applied to given deterministic actions ``a``
+    (batch shape ``a.shape[:-1]``), e.g. actions of per-option actors gathered per env."""
     p = cfg.random_action_prob if random_prob is None else random_prob
     sigma = cfg.exploration_noise if noise_std is None else noise_std
     kn, ku, kr = jax.random.split(key, 3)
-    a = td3_act(cfg, actor_params, obs, goal)
     sigma = jnp.asarray(sigma, a.dtype)[..., None] if jnp.ndim(sigma) else sigma
     noisy = a + cfg.max_action * sigma * jax.random.normal(kn, a.shape, a.dtype)
     noisy = jnp.clip(noisy, -cfg.max_action, cfg.max_action)
@@ -265,8 +281,9 @@ def td3_update(
 ) -> Tuple[TD3State, Dict[str, jax.Array]]:
     """One critic step; every ``policy_delay``-th call also an actor step and soft target update.
 
-    ``seed_axis``: the name of an enclosing ``vmap`` axis over independent runs (seeds), if any;
-    the actor step then runs when any run needs it instead of on every call."""
+    ``seed_axis``: the name of an enclosing ``vmap`` axis over independent runs (seeds), if any
+    (or a tuple of such names, e.g. seeds and options); the actor step then runs when any run
+    needs it instead of on every call."""
     noise = td3_target_noise(cfg, key, batch.action.shape)
     y = jax.lax.stop_gradient(td3_targets(cfg, state, batch, noise))
 
@@ -397,3 +414,66 @@ def td3_updates(
     metrics["actor_loss"] = jnp.sum(ms["actor_loss"]) / n_actor
     metrics["actor_updates"] = jnp.sum(ms["actor_updated"])
     return state, metrics
+
+
+# ------------------------------------------------------------------------------------------------
+# One TD3 per option (``Config.shared_critic=False``)
+# ------------------------------------------------------------------------------------------------
+OPTION_AXIS = "options"
+"""The vmap axis name over the options of :func:`td3_updates_per_option`."""
+
+
+def td3_init_per_option(key: jax.Array, num_options: int, obs_dim: int, goal_dim: int,
+                        action_dim: int, cfg: TD3Config) -> TD3State:
+    """``num_options`` independent :func:`td3_init` states (one key each, split from ``key``),
+    stacked on a leading option axis of every leaf."""
+    num_options = int(num_options)
+    if num_options < 1:
+        raise ValueError(f"td3_init_per_option: num_options must be >= 1, got {num_options}")
+    return jax.vmap(lambda k: td3_init(k, obs_dim, goal_dim, action_dim, cfg))(
+        jax.random.split(key, num_options))
+
+
+def td3_option(state: TD3State, option: jax.Array) -> TD3State:
+    """Option ``option``'s TD3State out of per-option states (a traced index works; under a vmap
+    over ``option`` each row gathers its own)."""
+    return jax.tree_util.tree_map(lambda x: x[option], state)
+
+
+def td3_updates_per_option(
+    cfg: TD3Config,
+    state: TD3State,
+    buffer: PyTree,
+    option_ids: jax.Array,
+    key: jax.Array,
+    num_steps: int,
+    sample_fn: Callable[[jax.Array, PyTree, int], Transition],
+    sample_block: int = 1,
+    seed_axis: Optional[str] = None,
+) -> Tuple[TD3State, Dict[str, jax.Array]]:
+    """:func:`td3_updates` for every option at once (one ``vmap`` over the option axis of
+    ``state``, see :func:`td3_init_per_option`): option ``k`` takes ``num_steps`` steps on
+    minibatches drawn only from the buffer entries with ``option_ids == k`` (``option_ids`` has the
+    buffer's ``valid`` shape). ``buffer`` must be a :class:`dscpp_jax.replay.Replay`; each option
+    samples from a view of it whose ``valid`` mask is restricted to its own entries.
+
+    An option without any valid entry keeps its state unchanged (a select, not a branch: its
+    steps run on whatever the empty view yields and are discarded). Metrics are means over the
+    options that learned; ``options_learning`` counts them."""
+    K = jax.tree_util.tree_leaves(state)[0].shape[0]
+    axes = OPTION_AXIS if seed_axis is None else (seed_axis, OPTION_AXIS)
+
+    def one(st, k, kk):
+        view = buffer.replace(valid=buffer.valid & (option_ids == k))
+        has = jnp.any(view.valid)
+        new, m = td3_updates(cfg, st, view, kk, num_steps, sample_fn, sample_block, axes)
+        new = jax.tree_util.tree_map(lambda a, b: jnp.where(has, a, b), new, st)
+        return new, m, has
+
+    new, ms, has = jax.vmap(one, axis_name=OPTION_AXIS)(
+        state, jnp.arange(K, dtype=jnp.int32), jax.random.split(key, K))
+    w = has.astype(jnp.float32)
+    n = jnp.maximum(jnp.sum(w), 1.0)
+    metrics = {k: jnp.sum(jnp.where(has, v, 0.0)) / n for k, v in ms.items()}
+    metrics["options_learning"] = jnp.sum(w)
+    return new, metrics

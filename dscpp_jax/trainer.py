@@ -40,7 +40,7 @@ from dscpp_jax.config import Config
 from envs.goal_env import select_state, select_states
 from dscpp_jax.replay import Replay, TrajStep, replay_add, replay_flatten, replay_init, replay_sample
 from dscpp_jax.td3 import TD3Config, TD3State, td3_init, td3_explore, td3_act, td3_updates, td3_value, \
-    td3_random_prob
+    td3_random_prob, td3_init_per_option, td3_option, td3_perturb, td3_updates_per_option
 
 PyTree = Any
 NO_OPTION = -1
@@ -250,10 +250,14 @@ def init_impl(key: jax.Array, config: Config) -> TrainState:
     env_state = jax.vmap(env.reset)(jax.random.split(k_env, B))
     goal = jnp.asarray(env.goal, jnp.float32)
     ex = exec_init(config, env_state.obs, env.goal)
-    td3 = td3_init(k_td3, od, 2, ad, td3_config(config))
+    if config.shared_critic:
+        td3 = td3_init(k_td3, od, 2, ad, td3_config(config))
+    else:   # one TD3 per option slot: every leaf gets a leading (max_options,) axis
+        td3 = td3_init_per_option(k_td3, config.max_options, od, 2, ad, td3_config(config))
     example = TrajStep(obs=jnp.zeros((od,), jnp.float32), action=jnp.zeros((ad,), jnp.float32),
                        next_obs=jnp.zeros((od,), jnp.float32), goal=jnp.zeros((2,), jnp.float32),
-                       seg_id=jnp.zeros((), jnp.int32))
+                       seg_id=jnp.zeros((), jnp.int32),
+                       option=None if config.shared_critic else jnp.zeros((), jnp.int32))
     replay = replay_init(example, config.replay_capacity, B)
     if config.model_based:
         dyn = _dynamics_init(k_dyn, od, ad, config)
@@ -323,10 +327,20 @@ def _choose_options(config: Config, env, chain, dp_table, td3, ex: ExecState, ob
     )
 
 
-def _policy_actions(config: Config, td3, dyn, obs, goals, key, explore: bool, rand_prob):
-    """(B, obs), (B, 2) -> (B, act): MPC or the actor; with exploration when `explore`."""
+def _policy_actions(config: Config, td3, dyn, obs, goals, key, explore: bool, rand_prob,
+                    options=None):
+    """(B, obs), (B, 2) -> (B, act): MPC or the actor; with exploration when `explore`.
+    `options` (B,): the option each env runs; with `config.shared_critic` off each env acts with
+    its option's actor (NO_OPTION, an env that runs none, with the global option's)."""
     B = obs.shape[0]
     tcfg = td3_config(config)
+    if not config.shared_critic:
+        if config.model_based or options is None:
+            raise ValueError("per-option actors (shared_critic=False) act for model-free "
+                             "algorithms and need the option of every env")
+        params = td3_option(td3, jnp.clip(options, 0)).actor_params     # gathered per env
+        acts = jax.vmap(lambda p, s, g: td3_act(tcfg, p, s, g))(params, obs, goals)
+        return td3_perturb(tcfg, acts, key, random_prob=rand_prob) if explore else acts
     if config.model_based:
         value_fn = value_net = None
         if config.uses_value_in_mpc:
@@ -410,7 +424,7 @@ def _rollout(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[s
         acts = jax.lax.cond(
             _all_seeds(warmup, seed_axis), lambda: rand_acts,
             lambda: jnp.where(warmup, rand_acts, _policy_actions(
-                config, td3, dyn, obs, ex.subgoal, k_act, True, rand_prob)))
+                config, td3, dyn, obs, ex.subgoal, k_act, True, rand_prob, ex.option)))
         if ib is None:
             nes = jax.vmap(env.step)(es, acts)
         else:
@@ -432,8 +446,9 @@ def _rollout(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[s
         if config.hierarchical:
             events = ended & ~warmup
             chain = _record_outcomes(config, chain, ex, success, events)
-        replay = replay_add(replay, TrajStep(obs=obs, action=acts, next_obs=nes.obs,
-                                             goal=ex.subgoal, seg_id=ex.seg_id), ~nan)
+        replay = replay_add(replay, TrajStep(
+            obs=obs, action=acts, next_obs=nes.obs, goal=ex.subgoal, seg_id=ex.seg_id,
+            option=None if config.shared_critic else ex.option), ~nan)
         if config.model_based:
             model_replay = replay_add(model_replay, (obs, acts, nes.obs), ~nan)
         done = nes.done > 0
@@ -522,7 +537,7 @@ def _inband_act(config: Config, env, chain, dp_table, td3, dyn, ib: InbandState)
     k_opt, k_act = jax.random.split(jax.random.fold_in(k_run, ib.t))
     obs = ib.env_state.obs
     ex = _choose_options(config, env, chain, dp_table, td3, ib.exec, obs, k_opt, evaluation=True)
-    acts = _policy_actions(config, td3, dyn, obs, ex.subgoal, k_act, False, 0.0)
+    acts = _policy_actions(config, td3, dyn, obs, ex.subgoal, k_act, False, 0.0, ex.option)
     return ex, acts
 
 
@@ -586,9 +601,17 @@ def _learn(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[str
     tcfg = td3_config(config)
     k_td3, k_dyn, k_pre = jax.random.split(key, 3)
     metrics: Dict[str, jax.Array] = {}
-    td3, tm = td3_updates(tcfg, state.td3, state.replay, k_td3, config.td3_updates,
-                          td3_sample_fn(config, env), sample_block=config.td3_sample_block,
-                          seed_axis=seed_axis)
+    if config.shared_critic:
+        td3, tm = td3_updates(tcfg, state.td3, state.replay, k_td3, config.td3_updates,
+                              td3_sample_fn(config, env), sample_block=config.td3_sample_block,
+                              seed_axis=seed_axis)
+    else:
+        # every option takes as many steps as the shared TD3 would in total, on minibatches of
+        # the transitions gathered while it ran (HER within those segments); one vmap over options
+        td3, tm = td3_updates_per_option(tcfg, state.td3, state.replay, state.replay.data.option,
+                                         k_td3, config.td3_updates, td3_sample_fn(config, env),
+                                         sample_block=config.td3_sample_block,
+                                         seed_axis=seed_axis)
     metrics.update({f"td3/{k}": v for k, v in tm.items()})
     finite = {"td3": _all_finite(td3)}
     dyn = state.dyn
@@ -613,7 +636,7 @@ def _learn(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[str
         chain = _refit(config, chain, seed_axis)
         chain = _grow_chain(config, chain, jnp.asarray(env.start, jnp.float32))
         if config.subgoal == "dp":
-            dp_table = _dp_value_table(config, chain, _value_fn(config, td3))
+            dp_table = _dp_value_table(config, chain, td3)
         metrics.update(_chain_metrics(config, chain, env.start))
         finite["classifiers"] = _all_finite(chain.clf)
     for k, v in finite.items():
@@ -785,8 +808,15 @@ def _select_option(config: Config, chain, xy, prefer_pessimistic: bool = False):
     return jax.vmap(lambda p: select_option(chain, p, prefer_pessimistic=prefer_pessimistic))(xy)
 
 
-def _value_fn(config: Config, td3):
+def _value_fn(config: Config, td3, option=None):
+    """value_fn(obs (..., obs_dim), goal (2,) or (..., 2)) -> (...): V(s | g) of the shared TD3, or
+    with `config.shared_critic` off of option `option`'s (a scalar, traced or not)."""
     tcfg = td3_config(config)
+    if not config.shared_critic:
+        if option is None:
+            raise ValueError("per-option critics (shared_critic=False): the value function needs "
+                             "the option whose critic to use")
+        td3 = td3_option(td3, jnp.asarray(option, jnp.int32))
 
     def value_fn(s, g):
         return td3_value(tcfg, td3, s, jnp.broadcast_to(g, s[..., :2].shape))
@@ -803,9 +833,9 @@ def _pick_subgoals(config: Config, chain, dp_table, td3, options, obs, keys):
         keys = jax.vmap(lambda o: jax.random.fold_in(jax.random.fold_in(base, o),
                                                      chain.num_options))(options)
         return jax.vmap(lambda k, o: subgoals.robust_subgoal(k, chain, o))(keys, options)
-    if config.subgoal == "dp":
-        vf = _value_fn(config, td3)
-        return jax.vmap(lambda o, s: subgoals.pick_subgoal(dp_table, chain, o, s, vf))(options, obs)
+    if config.subgoal == "dp":   # scored with the critic of the option that will pursue them
+        return jax.vmap(lambda o, s: subgoals.pick_subgoal(
+            dp_table, chain, o, s, _value_fn(config, td3, o)))(options, obs)
     return jax.vmap(lambda k, o: subgoals.robust_subgoal(k, chain, o))(keys, options)
 
 
@@ -833,9 +863,13 @@ def _grow_chain(config: Config, chain, start_xy):
     return grow_chain(chain, start_xy)
 
 
-def _dp_value_table(config: Config, chain, value_fn):
+def _dp_value_table(config: Config, chain, td3):
     from dscpp_jax.subgoals import dp_value_table
-    return dp_value_table(chain, value_fn, gamma=config.mpc_discount)
+    if config.shared_critic:
+        return dp_value_table(chain, _value_fn(config, td3), gamma=config.mpc_discount)
+    # each option's row of the table is valued with its own critic
+    return dp_value_table(chain, None, gamma=config.mpc_discount,
+                          option_value_fn=lambda k, s, g: _value_fn(config, td3, k)(s, g))
 
 
 def _chain_metrics(config: Config, chain, start_xy=None):

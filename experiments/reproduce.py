@@ -6,24 +6,27 @@ against what was measured.
     python experiments/reproduce.py --fig all --time-budget 3600 # re-run the same command: goes on
     python experiments/reproduce.py --fig 5,A3 --report-only     # figures + README from what exists
     # a CPU smoke run on point-mass twins
-    python experiments/reproduce.py --fig 6,5,A3 --env-map u_maze=point_u_maze \\
+    python experiments/reproduce.py --fig 6,5,A2,A3 --env-map u_maze=point_u_maze \\
         --mazes u_maze --algos dsc,mf_dscpp --seeds 0-1 --episodes 40 \\
         --runs-root /tmp/r --out /tmp/o
 
 One `train --seeds` program per (algorithm, env, subgoal, seeds), in a group directory named
 after them under --runs-root (no time stamp; `-long` for the 12,000-episode TD3, `-a1` for
-appendix Figure 1's own runs), so that the next call finds it: a group whose seeds have all
-reached the schedule is skipped, one with a checkpoint is continued with `train --resume` (also to
-a longer --episodes), one without a checkpoint (killed before its first) is moved aside and
-started again. A group made with other settings (--set, --preset) is left alone, with a
-message. `--time-budget` bounds each train call (it checkpoints and stops); the figures are drawn
-from whatever has been trained, and the README marks claims whose runs have not finished.
+appendix Figure 1's own runs, `-optcritic` for appendix Figure 2's one critic per option), so that
+the next call finds it; figures that need the same group (MF-DSC++ on U-maze: Figures 5, 6, A2,
+A3) share it, trained once. A group whose seeds have all reached the schedule is skipped, one
+with a checkpoint is continued with `train --resume` (also to a longer --episodes), one without
+a checkpoint (killed before its first) is moved aside and started again. A group made with other
+settings (--set, --preset) is left alone, with a message. `--time-budget` bounds each train call
+(it checkpoints and stops); the figures are drawn from whatever has been trained, and the README
+marks claims whose runs have not finished.
 
 Protocol (defaults, as in the paper): 5 seeds, 2,001 episodes of at most 1,000 steps (the
 preset's episode length), success from the task start, mean and standard error over seeds.
 Figure 4 and appendix Figure 1 train on Ant-Reacher for 1,000 episodes; Figure 6's dashed line
-is TD3+HER after 12,000 episodes (`--long-td3` schedules it). Appendix Figure 2 (one critic per
-option) needs per-option critics, which this implementation does not have: it is skipped.
+is TD3+HER after 12,000 episodes (`--long-td3` schedules it). Appendix Figure 2 compares MF-DSC++
+on U-maze with its one shared critic (Figure 5's and 6's group) and with one TD3 actor and critic
+per option (`--set shared_critic=false`).
 """
 from __future__ import annotations
 
@@ -53,8 +56,8 @@ NAMES = {"td3_her": "TD3+HER", "mb_flat": "MB flat", "mb_flat_value": "MB flat +
          "dsc": "DSC", "dual": "DSC + dual classifiers", "mf_dscpp": "MF-DSC++",
          "mb_dscpp": "MB-DSC++"}
 CORNERS = ((9.0, 9.0), (-9.0, 9.0), (9.0, -9.0), (-9.0, -9.0))
-A2_NOTE = ("needs per-option critics: not implemented (one goal-conditioned critic serves every "
-           "option here)")
+# appendix Figure 2's second arm: one TD3 actor + twin critic per option slot (model-free only)
+A2_SETS = ("shared_critic=false",)
 # Config fields that `train --resume` accepts (schedule and host-side cadences)
 RESUME_FIELDS = {"total_env_steps", "total_episodes", "eval_every", "eval_episodes",
                  "checkpoint_every", "keep_checkpoints", "log_every"}
@@ -72,6 +75,7 @@ class Exp:
     seeds: str
     subgoal: str = "robust"
     tag: str = ""              # "" | "long" (Fig. 6's 12,000-episode TD3) | "a1" (A1's own)
+    #                            | "optcritic" (A2's one critic per option)
     sets: tuple = ()           # extra --set values of this group
 
     def run_env(self, env_map: dict) -> str:
@@ -105,7 +109,7 @@ def parse_figs(text: str) -> tuple:
 
 
 def plan(args) -> dict:
-    """{figure: [Exp, ...]} for the requested figures (A2: [])."""
+    """{figure: [Exp, ...]} for the requested figures."""
     figs = parse_figs(args.fig)
     algos = set(_csv_list(args.algos, FIG6_ALGOS + ("dual",)))
     mazes = _csv_list(args.mazes, MAZES)
@@ -136,8 +140,11 @@ def plan(args) -> dict:
             out["A1"].append(fig4[0] if share else Exp("ant_reacher", args.fig4_algo,
                                                        args.fig4_episodes, args.a1_seeds,
                                                        tag="a1", sets=keep))
-    if "A2" in figs:
-        out["A2"] = []
+    # Appendix Figure 2: MF-DSC++ on U-maze, shared critic (the very group of Figures 5 and 6,
+    # trained once) vs one critic per option (its own group, `-optcritic`)
+    if "A2" in figs and "mf_dscpp" in algos:
+        out["A2"] = [Exp("u_maze", "mf_dscpp", ep, seeds),
+                     Exp("u_maze", "mf_dscpp", ep, seeds, tag="optcritic", sets=A2_SETS)]
     return out
 
 
@@ -399,8 +406,10 @@ class Data:
 
 
 def curve_figure(data: Data, panels: list, column: str, ylabel: str, path: str, csv_path: str,
-                 log: bool = False, hline: Optional[tuple] = None) -> Optional[str]:
-    """panels: [(title, [Exp, ...])]; one line per Exp (mean +- s.e. over its seeds)."""
+                 log: bool = False, hline: Optional[tuple] = None,
+                 arm: Optional[tuple] = None) -> Optional[str]:
+    """panels: [(title, [Exp, ...])]; one line per Exp (mean +- s.e. over its seeds). `arm`:
+    (CSV column, {Exp: (value, legend label)}) for lines of one algorithm that differ otherwise."""
     plt = _plt()
     rows, drawn = [], 0
     fig, axes = plt.subplots(1, len(panels), figsize=(5.2 * len(panels), 4.2), squeeze=False)
@@ -411,10 +420,12 @@ def curve_figure(data: Data, panels: list, column: str, ylabel: str, path: str, 
                 continue
             grid, mean, se, n = mean_se(cs)
             env = exp.run_env(data.args.env_map)
+            extra = [arm[1][exp][0]] if arm else []
             for g, m, s in zip(grid, mean, se):
-                rows.append([title, env, exp.algo, exp.subgoal, int(g), m, s, n,
-                             int(data.finished(exp))])
-            line, = ax.plot(grid, mean, label=f"{NAMES[exp.algo]} (n={n})")
+                rows.append([title, env, exp.algo] + extra + [exp.subgoal, int(g), m, s, n,
+                                                               int(data.finished(exp))])
+            label = arm[1][exp][1] if arm else NAMES[exp.algo]
+            line, = ax.plot(grid, mean, label=f"{label} (n={n})")
             if n > 1:
                 ax.fill_between(grid, mean - se, mean + se, color=line.get_color(), alpha=0.25)
             drawn += 1
@@ -439,8 +450,8 @@ def curve_figure(data: Data, panels: list, column: str, ylabel: str, path: str, 
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
-    _write_csv(csv_path, ["panel", "env", "algo", "subgoal", "episodes", "mean", "se", "n_seeds",
-                          "finished"], rows)
+    _write_csv(csv_path, ["panel", "env", "algo"] + ([arm[0]] if arm else [])
+               + ["subgoal", "episodes", "mean", "se", "n_seeds", "finished"], rows)
     return path
 
 
@@ -478,6 +489,20 @@ def fig5(data: Data, out: str) -> Optional[str]:
     return curve_figure(data, [(_maze_title("u_maze", data.args.env_map), data.figs["5"])],
                         "options/chain_probability", "chain probability (eq. 3)",
                         os.path.join(out, "fig5.png"), os.path.join(out, "fig5.csv"), log=True)
+
+
+def _a2_arms(exps: list) -> dict:
+    """{Exp: (critic column value, legend label)} for appendix Figure 2's two arms."""
+    return {e: (("per_option", f"{NAMES[e.algo]}, one critic per option") if e.tag == "optcritic"
+                else ("shared", f"{NAMES[e.algo]}, one shared critic")) for e in exps}
+
+
+def figA2(data: Data, out: str) -> Optional[str]:
+    exps = data.figs.get("A2", [])
+    return curve_figure(data, [(_maze_title("u_maze", data.args.env_map), exps)],
+                        "eval/success_rate", "success rate from the start",
+                        os.path.join(out, "figA2.png"), os.path.join(out, "figA2.csv"),
+                        arm=("critic", _a2_arms(exps)))
 
 
 def figA3(data: Data, out: str) -> Optional[str]:
@@ -824,8 +849,22 @@ def claims(data: Data, args, figures: dict) -> list:
         out.append(("A1", claim, measured, _status(ok, len(areas) == 2 and all(
             data.finished(e) for e in ea))))
     # --- Appendix Figure 2 -----------------------------------------------------------------
-    out.append(("A2", "MF-DSC++ on U-maze learns better with one shared critic than with one "
-                "critic per option", "-", f"not run: {A2_NOTE}"))
+    arms = {("per_option" if e.tag == "optcritic" else "shared"): e
+            for e in data.figs.get("A2", [])}
+    got = {k: final(e) for k, e in arms.items()}
+    got = {k: v for k, v in got.items() if v is not None}
+    claim = ("MF-DSC++ on U-maze learns better with one shared critic than with one critic per "
+             "option")
+    if not got:
+        out.append(("A2", claim, "-", "not run"))
+    else:
+        words = {"shared": "one shared critic", "per_option": "one critic per option"}
+        measured = "; ".join(f"{words[k]} {_fmt(got[k])}" for k in ("shared", "per_option")
+                             if k in got) + \
+            f" ({next(iter(arms.values())).run_env(args.env_map)}, success at the end)"
+        ok = len(got) == 2 and got["shared"].mean() > got["per_option"].mean()
+        complete = len(got) == 2 and all(data.finished(e) for e in arms.values())
+        out.append(("A2", claim, measured, _status(ok, complete)))
     # --- Appendix Figure 3 -----------------------------------------------------------------
     exps = {e.algo: e for e in data.figs.get("A3", [])}
     got = {a: final(e, "options/num_options") for a, e in exps.items()}
@@ -891,8 +930,6 @@ def write_readme(data: Data, args, figures: dict, status: dict) -> str:
             csvp = os.path.splitext(os.path.basename(p))[0] + ".csv"
             lines.append(f"- Figure {fig}: [`{os.path.basename(p)}`]({os.path.basename(p)}), "
                          f"numbers in [`{csvp}`]({csvp})")
-        elif fig == "A2":
-            lines.append(f"- Figure A2: {A2_NOTE}")
         else:
             lines.append(f"- Figure {fig}: not drawn (no runs yet)")
     if status:
@@ -910,7 +947,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fig", default="all", help="4, 5, 6, A1, A2, A3 or all (comma separated)")
     p.add_argument("--seeds", default="0-4", help="seeds of every group (default 0-4: 5 seeds)")
     p.add_argument("--episodes", "--total-episodes", dest="episodes", type=int, default=2001,
-                   help="episodes per run of Figures 5, 6 and A3 (default 2001)")
+                   help="episodes per run of Figures 5, 6, A2 and A3 (default 2001)")
     p.add_argument("--total-steps", dest="total_steps", type=int, default=None,
                    help="also stop each run at this many env steps (default: loose enough that "
                         "the episode budget binds)")
@@ -970,8 +1007,6 @@ def main(argv: Optional[list] = None) -> int:
         args.runs_root = os.path.join(ROOT, args.runs_root)
     if not os.path.isabs(args.out):
         args.out = os.path.join(ROOT, args.out)
-    if "A2" in figs:
-        print(f"[reproduce] A2: skipped: {A2_NOTE}", flush=True)
     status = {} if args.report_only else train_all(args, figs)
     if args.dry_run:
         return 0
@@ -983,7 +1018,7 @@ def main(argv: Optional[list] = None) -> int:
     # the report covers every figure whose runs exist, whichever this call trained
     everything = plan(argparse.Namespace(**{**vars(args), "fig": "all", "long_td3": True}))
     data = Data(args, everything)
-    makers = {"6": fig6, "5": fig5, "A3": figA3, "4": fig4, "A1": figA1}
+    makers = {"6": fig6, "5": fig5, "A2": figA2, "A3": figA3, "4": fig4, "A1": figA1}
     figures = {}
     for fig in FIGS:
         if fig in makers:

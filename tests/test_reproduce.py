@@ -1,6 +1,7 @@
-"""experiments/reproduce.py end to end on tiny point-mass configs: two algorithms, two seeds, a
-few iterations each; every figure that has runs is drawn with its CSV, the README checks each
-claim, and a second call trains nothing (finished groups are skipped)."""
+"""experiments/reproduce.py end to end on tiny point-mass configs: two algorithms (and MF-DSC++
+with one critic per option for appendix Figure 2), two seeds, a few iterations each; every figure
+that has runs is drawn with its CSV, the README checks each claim, and a second call trains nothing
+(finished groups are skipped)."""
 import csv
 import hashlib
 import json
@@ -50,10 +51,14 @@ def test_reproduce_trains_draws_reports_then_skips(tmp_path, capsys):
     runs, out = str(tmp_path / "runs"), str(tmp_path / "out")
     assert reproduce.main(_args(runs, out)) == 0
     text = capsys.readouterr().out
-    assert "A2: skipped: needs per-option critics" in text
-    # Figure 4's robust group is also A1's DSC++ group (same seeds): five groups, trained once
-    assert text.count(": started") == 5 and text.count(": finished (") == 5
-    for fig in ("fig4", "fig5", "fig6", "figA1", "figA3"):
+    # Figure 4's robust group is also A1's DSC++ group (same seeds), and A2's shared-critic arm is
+    # Figures 5 and 6's MF-DSC++ group: six groups, each trained once
+    assert text.count(": started") == 6 and text.count(": finished (") == 6
+    assert "point_u_maze-mf_dscpp-g0-1-optcritic: started" in text
+    opt = json.load(open(os.path.join(runs, "point_u_maze-mf_dscpp-g0-1-optcritic",
+                                      "group.json")))["config"]
+    assert opt["shared_critic"] is False and opt["algo"] == "mf_dscpp"
+    for fig in ("fig4", "fig5", "fig6", "figA1", "figA2", "figA3"):
         assert os.path.getsize(os.path.join(out, fig + ".png")) > 1000, fig
         assert _rows(os.path.join(out, fig + ".csv")), fig
     f6 = _rows(os.path.join(out, "fig6.csv"))
@@ -69,6 +74,10 @@ def test_reproduce_trains_draws_reports_then_skips(tmp_path, capsys):
     a1 = _rows(os.path.join(out, "figA1.csv"))
     assert {r["algo"] for r in a1} == {"dsc", "mf_dscpp"}
     assert len({r["checkpoint"] for r in a1 if r["algo"] == "dsc"}) >= 3   # kept over training
+    a2 = _rows(os.path.join(out, "figA2.csv"))
+    assert {(r["algo"], r["critic"]) for r in a2} == {("mf_dscpp", "shared"),
+                                                      ("mf_dscpp", "per_option")}
+    assert {r["env"] for r in a2} == {"point_u_maze"} and {r["n_seeds"] for r in a2} == {"2"}
 
     readme = open(os.path.join(out, "README.md")).read()
     table = [l for l in readme.splitlines() if l.startswith("| ") and not l.startswith("| figure")]
@@ -78,7 +87,10 @@ def test_reproduce_trains_draws_reports_then_skips(tmp_path, capsys):
     for line in table:
         status = line.rstrip(" |").rsplit("|", 1)[1].strip()
         assert status.startswith(ok), line
-    assert "| A2 |" in readme and "not implemented" in readme
+    a2 = next(l for l in table if l.startswith("| A2 |"))
+    assert "one shared critic" in a2 and "one critic per option" in a2 and "point_u_maze" in a2
+    assert a2.endswith(("| reproduced |", "| not reproduced |"))   # both arms finished
+    assert "not implemented" not in readme and "[`figA2.png`](figA2.png)" in readme
     # only two of Figure 6's six algorithms ran: that claim cannot be settled
     assert any(l.startswith("| 6 | u_maze: MB-DSC++ and MF-DSC++ outperform") and "incomplete"
                in l for l in table)
@@ -87,10 +99,10 @@ def test_reproduce_trains_draws_reports_then_skips(tmp_path, capsys):
 
     # a second call finds every group finished: no training, metrics untouched
     before = _metrics(runs)
-    assert len(before) == 10   # 5 groups x 2 seeds
+    assert len(before) == 12   # 6 groups x 2 seeds
     assert reproduce.main(_args(runs, out)) == 0
     text = capsys.readouterr().out
-    assert text.count("skipped (finished)") == 5
+    assert text.count("skipped (finished)") == 6
     assert ": started" not in text and ": resumed" not in text
     assert _metrics(runs) == before
 
@@ -123,7 +135,18 @@ def test_reproduce_trains_draws_reports_then_skips(tmp_path, capsys):
 def test_bad_figure_and_a2_only(tmp_path, capsys):
     assert reproduce.main(["--fig", "7"]) == 2
     assert "unknown figure" in capsys.readouterr().err
-    out = str(tmp_path / "out")
-    assert reproduce.main(["--fig", "A2", "--runs-root", str(tmp_path / "runs"), "--out", out]) == 0
+    out, runs = str(tmp_path / "out"), str(tmp_path / "runs")
+    # appendix Figure 2 alone: the shared-critic group (named as Figures 5 and 6 name it) and its
+    # own one-critic-per-option group
+    assert reproduce.main(["--fig", "A2", "--runs-root", runs, "--out", out, "--dry-run"]) == 0
+    text = capsys.readouterr().out
+    lines = [l for l in text.splitlines() if ": would start: " in l]
+    assert len(lines) == 2
+    shared, = [l for l in lines if "u_maze-mf_dscpp-g0-4: would start" in l]
+    per, = [l for l in lines if "u_maze-mf_dscpp-g0-4-optcritic: would start" in l]
+    assert "shared_critic" not in shared and "--set shared_critic=false" in per
+    assert "--env u_maze --algo mf_dscpp" in per
+    assert reproduce.main(["--fig", "A2", "--runs-root", runs, "--out", out,
+                           "--report-only"]) == 0
     readme = open(os.path.join(out, "README.md")).read()
     assert readme.count("| not run") == readme.count("\n| ") - 1   # every claim: not run

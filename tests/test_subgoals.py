@@ -125,8 +125,10 @@ def _synthetic_chain(seed=0):
     return ch
 
 
-def _ref_dp(ch, gamma=0.95, tol=TOL, goal_value=0.0):
-    """Algorithm 1 with plain loops: returns {option: (outputs, cont, Q (inputs x outputs))}."""
+def _ref_dp(ch, gamma=0.95, tol=TOL, goal_value=0.0, value_np=None):
+    """Algorithm 1 with plain loops: returns {option: (outputs, cont, Q (inputs x outputs))}.
+    ``value_np(option, obs, g)``: a value function per option (default `_value_np` for all)."""
+    value_np = value_np or (lambda o, s, g: _value_np(s, g))
     parent = np.asarray(ch.parent)
     xy = np.asarray(ch.pos_xy[:, :, 0])
     obs = np.asarray(ch.pos_obs)
@@ -148,16 +150,31 @@ def _ref_dp(ch, gamma=0.95, tol=TOL, goal_value=0.0):
                 continue
             for j, s2, cont in outs:
                 same = np.linalg.norm(xy[o, i] - s2) <= tol
-                Q[i, j] = (0.0 if same else _value_np(obs[o, i], s2)) + gamma * cont
+                Q[i, j] = (0.0 if same else value_np(o, obs[o, i], s2)) + gamma * cont
             W[o][i] = max(Q[i, j] for j, _, _ in outs)
         out[o] = (outs, Q)
     return out
 
 
-def test_dp_table_matches_reference():
+def _per_option_np(o, s, g):
+    return _value_np(s, g) * (1.0 + 0.5 * o)
+
+
+def _per_option_jax(o, s, g):
+    return _value_jax(s, g) * (1.0 + 0.5 * o)
+
+
+@pytest.mark.parametrize("per_option", [False, True], ids=["shared", "per_option"])
+def test_dp_table_matches_reference(per_option):
+    """Also with one value function per option (`option_value_fn`, one critic per option): each
+    option's row is valued with its own."""
     ch = _synthetic_chain()
-    table = jax.jit(S.dp_value_table, static_argnums=1)(ch, _value_jax)
-    ref = _ref_dp(ch)
+    if per_option:
+        table = jax.jit(lambda c: S.dp_value_table(c, None, option_value_fn=_per_option_jax))(ch)
+        ref = _ref_dp(ch, value_np=_per_option_np)
+    else:
+        table = jax.jit(S.dp_value_table, static_argnums=1)(ch, _value_jax)
+        ref = _ref_dp(ch)
     q = np.asarray(table.q)
     for o, (outs, Q) in ref.items():
         out_idx = [j for j, _, _ in outs]

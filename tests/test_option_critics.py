@@ -1,0 +1,196 @@
+"""One TD3 per option (`Config.shared_critic=False`, the paper's appendix Figure 2): the option
+axis, options that never ran keep their initial networks, each option learns only from its own
+transitions, acting and evaluation use the running option's actor, and MF-DSC++ trains, evaluates
+and resumes from a checkpoint exactly."""
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import dscpp_jax
+from dscpp_jax import checkpoint as ck
+from dscpp_jax import trainer as T
+from dscpp_jax.her import her_sample
+from dscpp_jax.replay import TrajStep, replay_add, replay_init
+from dscpp_jax.td3 import (TD3Config, td3_act, td3_init, td3_init_per_option, td3_option,
+                           td3_updates, td3_updates_per_option)
+from tests.trainer_fixtures import assert_trees_equal, tiny
+
+OBS, GOAL, ACT, K, NE, ROWS = 4, 2, 2, 3, 4, 12
+CFG = TD3Config.model_free(hidden=(16, 16), batch_size=16)
+
+
+def _buffer(seed, option_of_env=(1, 1, 2, 2), extra=None):
+    """ROWS x NE transitions; env e's column ran option ``option_of_env[e]`` (segments of 4 steps).
+    obs[..., 0] holds the option id so a sample's origin is visible. ``extra``: (option, scale)
+    adds ``scale`` noise to that option's observations, actions and goals (other data unchanged)."""
+    rng = np.random.default_rng(seed)
+    opt = np.broadcast_to(np.asarray(option_of_env, np.int32), (ROWS, NE))
+    obs = rng.normal(size=(ROWS, NE, OBS)).astype(np.float32)
+    nxt = obs + 0.1 * rng.normal(size=obs.shape).astype(np.float32)
+    act = rng.uniform(-1, 1, size=(ROWS, NE, ACT)).astype(np.float32)
+    goal = rng.normal(size=(ROWS, NE, GOAL)).astype(np.float32)
+    if extra is not None:
+        o, scale = extra
+        m = (opt == o)[..., None]
+        obs = obs + m * scale * rng.normal(size=obs.shape).astype(np.float32)
+        nxt = nxt + m * scale * rng.normal(size=nxt.shape).astype(np.float32)
+        act = np.clip(act + m * scale * rng.normal(size=act.shape).astype(np.float32), -1, 1)
+        goal = goal + m * scale * rng.normal(size=goal.shape).astype(np.float32)
+    obs[..., 0] = opt
+    nxt[..., 0] = opt
+    seg = np.broadcast_to((np.arange(ROWS) // 4)[:, None], (ROWS, NE)).astype(np.int32)
+    ex = TrajStep(jnp.zeros(OBS), jnp.zeros(ACT), jnp.zeros(OBS), jnp.zeros(GOAL),
+                  jnp.zeros((), jnp.int32), option=jnp.zeros((), jnp.int32))
+    buf = replay_init(ex, ROWS * NE, NE)
+    for t in range(ROWS):
+        buf = replay_add(buf, TrajStep(jnp.asarray(obs[t]), jnp.asarray(act[t]), jnp.asarray(nxt[t]),
+                                       jnp.asarray(goal[t]), jnp.asarray(seg[t]),
+                                       option=jnp.asarray(opt[t])))
+    return buf
+
+
+def _sample(k, b, n):
+    return her_sample(k, b, n, strategy="future", max_segment=4)
+
+
+@functools.partial(jax.jit, static_argnums=3)
+def _per_option(states, buf, key, steps=4):
+    return td3_updates_per_option(CFG, states, buf, buf.data.option, key, steps, _sample)
+
+
+@functools.partial(jax.jit, static_argnums=3)
+def _alone(state, buf, key, steps=4):
+    return td3_updates(CFG, state, buf, key, steps, _sample)
+
+
+def test_option_update_uses_only_its_own_transitions_and_idle_options_keep_their_networks():
+    init = jax.jit(lambda k: td3_init_per_option(k, K, OBS, GOAL, ACT, CFG))(jax.random.key(0))
+    leaves = jax.tree_util.tree_leaves(init)
+    assert all(x.shape[0] == K for x in leaves)
+    # initialised like the shared TD3, one key each
+    assert_trees_equal(td3_option(init, 1),
+                       td3_init(jax.random.split(jax.random.key(0), K)[1], OBS, GOAL, ACT, CFG))
+    key = jax.random.key(5)
+    buf = _buffer(0)
+    new, m = _per_option(init, buf, key)
+    # option 0 has no transitions: every leaf (params, targets, Adam states, step) unchanged
+    assert_trees_equal(td3_option(new, 0), td3_option(init, 0))
+    assert float(m["options_learning"]) == 2.0 and np.isfinite(float(m["critic_loss"]))
+    for o in (1, 2):
+        assert int(td3_option(new, o).step) == 4
+        assert not np.array_equal(np.asarray(td3_option(new, o).critic_params["params"]["heads"]
+                                             ["hidden_0"]["kernel"]),
+                                  np.asarray(td3_option(init, o).critic_params["params"]["heads"]
+                                             ["hidden_0"]["kernel"]))
+    # option 2's data changed (same positions, other values): option 1's update is bitwise the
+    # same, option 2's is not
+    new2, _ = _per_option(init, _buffer(0, extra=(2, 3.0)), key)
+    assert_trees_equal(td3_option(new2, 1), td3_option(new, 1))
+    assert_trees_equal(td3_option(new2, 0), td3_option(init, 0))
+    assert not np.array_equal(np.asarray(td3_option(new2, 2).critic_params["params"]["heads"]
+                                         ["out"]["kernel"]),
+                              np.asarray(td3_option(new, 2).critic_params["params"]["heads"]
+                                         ["out"]["kernel"]))
+    # option 1's update is td3_updates on a buffer holding only option 1's transitions, with its
+    # share of the key (to rounding: under the option vmap the matmuls are batched)
+    only1 = buf.replace(valid=buf.valid & (buf.data.option == 1))
+    ref, _ = _alone(td3_option(init, 1), only1, jax.random.split(key, K)[1])
+    for a, b in zip(jax.tree_util.tree_leaves(td3_option(new, 1)), jax.tree_util.tree_leaves(ref)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-5, atol=1e-6)
+
+
+def test_masked_view_samples_only_that_options_transitions():
+    buf = _buffer(1, option_of_env=(0, 1, 2, 1))
+    for o in range(K):
+        view = buf.replace(valid=buf.valid & (buf.data.option == o))
+        tr = jax.jit(lambda k, b: her_sample(k, b, 256, "future", max_segment=4))(
+            jax.random.key(o), view)
+        np.testing.assert_array_equal(np.asarray(tr.obs[:, 0]), o)
+        # relabelled goals stay inside the option's own segments
+        achieved = np.asarray(buf.data.next_obs[..., :GOAL])[np.asarray(buf.data.option) == o]
+        relabelled = np.asarray(tr.goal)
+        own = (np.abs(relabelled[:, None] - achieved[None]).sum(-1) == 0).any(1)
+        pursued = np.asarray(buf.data.goal)[np.asarray(buf.data.option) == o]
+        kept = (np.abs(relabelled[:, None] - pursued[None]).sum(-1) == 0).any(1)
+        assert np.all(own | kept)
+
+
+def test_each_env_acts_with_its_options_actor():
+    cfg = tiny("mf_dscpp", shared_critic=False)
+    s = T.init(jax.random.PRNGKey(0), cfg)
+    tcfg = T.td3_config(s.config)
+    obs = jax.random.normal(jax.random.key(1), (5, s.env_state.obs.shape[-1]))
+    goals = jax.random.normal(jax.random.key(2), (5, 2))
+    options = jnp.asarray([0, 1, 2, 3, T.NO_OPTION], jnp.int32)
+    acts = jax.jit(lambda td3: T._policy_actions(s.config, td3, None, obs, goals, None, False, 0.0,
+                                                 options))(s.td3)
+    for i, o in enumerate([0, 1, 2, 3, 0]):
+        want = td3_act(tcfg, td3_option(s.td3, o).actor_params, obs[i:i + 1], goals[i:i + 1])[0]
+        np.testing.assert_allclose(np.asarray(acts[i]), np.asarray(want), rtol=1e-5, atol=1e-6)
+
+
+def test_model_based_with_per_option_critics_is_rejected():
+    with pytest.raises(ValueError, match="shared_critic"):
+        T.init(jax.random.PRNGKey(0), tiny("mb_dscpp", shared_critic=False))
+    with pytest.raises(ValueError, match="shared_critic"):
+        tiny("mf_dscpp", shared_critic=1).validate()
+
+
+_E2E = tiny("mf_dscpp", shared_critic=False, subgoal="dp", warmup_episodes=0, inband_eval_envs=2)
+
+
+def test_mf_dscpp_per_option_trains_evaluates_and_resumes_exactly(tmp_path):
+    """DP subgoals (each option's critic scores its subgoals and its row of the table) and in-band
+    evaluation on."""
+    cfg = _E2E
+    s0 = T.init(jax.random.PRNGKey(3), cfg)
+    assert T.init(jax.random.PRNGKey(3), cfg.override(shared_critic=True)).replay.data.option is None
+    straight = s0
+    for _ in range(4):
+        straight, m = T.train_step(straight)
+        assert all(np.isfinite(float(v)) for k, v in m.items() if k.startswith("td3/"))
+    ran = np.unique(np.asarray(straight.replay.data.option)[np.asarray(straight.replay.valid)])
+    assert len(ran) >= 1 and float(m["td3/options_learning"]) == len(ran)
+    for o in range(cfg.max_options):      # options that never ran keep their initial networks
+        if o not in ran:
+            assert_trees_equal(td3_option(straight.td3, o), td3_option(s0.td3, o))
+    half = s0
+    for _ in range(2):
+        half, _ = T.train_step(half)
+    ck.save_state(str(tmp_path), int(half.counters.iteration), half)
+    resumed = ck.restore_state(str(tmp_path), T.init(jax.random.PRNGKey(99), cfg))
+    assert_trees_equal(resumed, half)
+    n_compiled = T.train_step._cache_size()
+    for _ in range(2):
+        resumed, _ = T.train_step(resumed)
+    assert T.train_step._cache_size() == n_compiled
+    assert_trees_equal(resumed, straight)
+    summary, res = dscpp_jax.evaluate(straight, jax.random.PRNGKey(0), 2)
+    assert 0.0 <= summary["eval/success_rate"] <= 1.0
+    assert 0.0 <= float(m["inband/success_rate"]) <= 1.0
+    policy = dscpp_jax.make_policy(straight)
+    obs = straight.env_state.obs
+    ex, acts, opts = jax.jit(policy.step)(policy.init(obs), obs, jax.random.PRNGKey(1))
+    assert acts.shape == (obs.shape[0], 2) and np.all(np.isfinite(np.asarray(acts)))
+    tcfg = T.td3_config(straight.config)
+    for i, o in enumerate(np.asarray(opts)):    # each env acted with its option's actor
+        want = td3_act(tcfg, td3_option(straight.td3, o).actor_params, obs[i:i + 1],
+                       ex.subgoal[i:i + 1])
+        np.testing.assert_allclose(np.asarray(acts[i]), np.asarray(want[0]), rtol=1e-5, atol=1e-6)
+
+
+def test_seed_group_with_per_option_critics():
+    """Each run of a seed group updates its options as if alone (the actor-step predicate is
+    reduced over both the seed and the option axis)."""
+    cfg = _E2E     # train_step is compiled for it already when the test above ran
+    keys = jax.random.split(jax.random.PRNGKey(7), 2)
+    states = jax.vmap(lambda k: T.init(k, cfg))(keys)
+    states, vm = jax.jit(T.train_step_group_impl)(states)
+    one, m = T.train_step(T.init(keys[1], cfg))
+    for a, b in zip(jax.tree_util.tree_leaves(jax.tree_util.tree_map(lambda x: x[1], states.td3)),
+                    jax.tree_util.tree_leaves(one.td3)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-4, atol=1e-4)
+    assert float(vm["td3/critic_loss"][1]) == pytest.approx(float(m["td3/critic_loss"]), rel=1e-4)
