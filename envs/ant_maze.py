@@ -252,6 +252,10 @@ def _warp_model_and_data(mj_model: mujoco.MjModel, d0: mujoco.MjData, cfg: AntCo
     if not warp_available():
         raise ValueError("physics='warp' needs the warp-lang package (pip install -e '.[warp]', "
                          "or '.[cuda]' on a GPU host); use physics='jax' without it")
+    import warp
+    # Warp's start-up banner and per-module load lines are information, not news: print warnings
+    # and errors only (a level set by the user stays when it is already quieter)
+    warp.config.log_level = max(warp.config.log_level, warp.LOG_WARNING)
     model = mjx.put_model(mj_model, impl="warp")
     # Overflows are detected from the data (AntMazeEnv.physics_overflow); the solver's
     # "iteration limit reached" notes would print on every step of a capped Newton solve.
