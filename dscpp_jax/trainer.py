@@ -22,8 +22,8 @@ Per environment step:
 
 In-band evaluation (`Config.inband_eval_envs` = E > 0): E more environments run evaluation
 episodes from the task start in the same scan, stepped in one physics batch of B + E with the
-training environments (with `inband_eval_batched` off, and on MuJoCo Warp, by a second vmapped
-step). They act with `evaluate`'s
+training environments (`envs.goal_env.join_states`; with `inband_eval_batched` off, by a second
+vmapped step). They act with `evaluate`'s
 deterministic policy, as of the iteration's start, and write only `TrainState.inband` (their env
 and option state, and a ring of the last finished outcomes); metrics `inband/*`.
 """
@@ -37,7 +37,7 @@ import jax
 import jax.numpy as jnp
 
 from dscpp_jax.config import Config
-from envs.goal_env import select_state, select_states
+from envs.goal_env import join_states, select_state, select_states, split_states
 from dscpp_jax.replay import Replay, TrajStep, replay_add, replay_flatten, replay_init, replay_sample
 from dscpp_jax.td3 import TD3Config, TD3State, td3_init, td3_explore, td3_act, td3_updates, td3_value, \
     td3_random_prob, td3_init_per_option, td3_option, td3_perturb, td3_updates_per_option
@@ -157,20 +157,29 @@ def _build_env(name, episode_length, goal_tolerance, integrator, physics, worlds
 
 
 def inband_batched(config: Config) -> bool:
-    """Whether the in-band envs step in one batch with the training envs (one env step over
-    B + E): `Config.inband_eval_batched`, except on MuJoCo Warp, whose Data keeps contact buffers
-    shared by all worlds of a batch, which two batches cannot be concatenated into; there (and
-    with the option off) the in-band envs take a second vmapped step, on an env whose buffers are
-    sized for them."""
-    return config.inband_eval_batched and resolve_physics(config).physics != "warp"
+    """Whether the in-band envs step in one batch with the training envs (one physics call over
+    B + E worlds, `envs.goal_env.join_states`): `Config.inband_eval_batched`. Otherwise they take
+    a second physics call of their own each step."""
+    return config.inband_eval_batched
 
 
 def inband_env(config: Config):
-    """The env the in-band envs step with (`make_env(config)` itself where they are batched with
-    the training envs; on Warp, one sized for ``group_size * inband_eval_envs`` worlds)."""
-    if inband_batched(config):
-        return make_env(config)
+    """The env that resets the in-band envs (on MuJoCo Warp one whose shared contact buffers are
+    sized for ``group_size * inband_eval_envs`` worlds, so that the in-band batch keeps its own)."""
     return make_env(config, worlds=config.group_size * config.inband_eval_envs)
+
+
+def joint_env(config: Config):
+    """The env that steps training and in-band envs together (`inband_batched`): sized for
+    ``group_size * (num_envs + inband_eval_envs)`` worlds."""
+    return make_env(config, worlds=config.group_size * (config.num_envs + config.inband_eval_envs))
+
+
+def step_env(config: Config):
+    """The env whose physics step `train_step` runs (sized for every world it steps at once)."""
+    if config.inband_eval_envs > 0 and inband_batched(config):
+        return joint_env(config)
+    return make_env(config)
 
 
 INBAND_KEY_SALT = 0x1B_E7A1
@@ -430,9 +439,12 @@ def _rollout(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[s
         else:
             ib_ex, ib_acts = _inband_act(config, ib_env, ib_chain, dp_table, td3, dyn, ib)
             if inband_batched(config):   # one physics batch of B + E envs
-                both = jax.vmap(env.step)(_concat(es, ib.env_state), _concat(acts, ib_acts))
-                nes = jax.tree_util.tree_map(lambda x: x[:B], both)
-                ib_nes = jax.tree_util.tree_map(lambda x: x[B:], both)
+                j_env = step_env(config)
+                like = jax.eval_shape(jax.vmap(j_env.reset),
+                                      jax.random.split(k_reset, B + config.inband_eval_envs))
+                both = jax.vmap(j_env.step)(join_states(es, ib.env_state, like),
+                                            jnp.concatenate([acts, ib_acts], axis=0))
+                nes, ib_nes = split_states(both, es, ib.env_state)
             else:
                 nes = jax.vmap(env.step)(es, acts)
                 ib_nes = jax.vmap(ib_env.step)(ib.env_state, ib_acts)
@@ -518,10 +530,6 @@ def _rollout(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[s
 # ------------------------------------------------------------------------------------------------
 # In-band evaluation
 # ------------------------------------------------------------------------------------------------
-def _concat(a, b):
-    return jax.tree_util.tree_map(lambda x, y: jnp.concatenate([x, y], axis=0), a, b)
-
-
 def _where_rows(pred, on_true, on_false):
     """Per-row select over pytrees with a leading axis (pred: (E,))."""
     return jax.tree_util.tree_map(

@@ -31,6 +31,52 @@ def select_states(pred, on_true, on_false):
     return jax.vmap(select_state)(pred, on_true, on_false)
 
 
+def join_states(a, b, like):
+    """Two batches of States (leading axes B and E) as one of B + E, shaped as `like` (the
+    abstract joint batch, e.g. `jax.eval_shape` of a vmapped reset of an env sized for B + E
+    worlds; its tree structure is the result's). Per-world leaves are concatenated; MuJoCo Warp's
+    buffers shared by all worlds of a batch (contacts, sized by the worlds) are concatenated too,
+    and its batch-wide counters (recomputed by every step) come from `a`. `split_states` undoes
+    it, so two batches can take one physics step without either changing the other's results."""
+    xs, ys = jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)
+    ls, treedef = jax.tree_util.tree_flatten(like)
+    if not len(xs) == len(ys) == len(ls):
+        raise ValueError("join_states: the two batches and `like` are different kinds of state")
+    out = []
+    for x, y, l in zip(xs, ys, ls):
+        if x.ndim and x.ndim == y.ndim == len(l.shape) and x.shape[0] + y.shape[0] == l.shape[0]:
+            out.append(jnp.concatenate([x, y], axis=0))
+        elif x.shape == tuple(l.shape):
+            out.append(x)
+        else:
+            raise ValueError(f"join_states: leaves of shapes {x.shape} and {y.shape} do not make "
+                             f"one of {tuple(l.shape)}")
+    return jax.tree_util.tree_unflatten(treedef, out)
+
+
+def split_states(joint, like_a, like_b):
+    """The inverse of `join_states`: the joint batch as batches shaped as `like_a` and `like_b`
+    (trees of arrays or shapes); leaves that are batch-wide counters go to both."""
+    zs = jax.tree_util.tree_leaves(joint)
+    la, def_a = jax.tree_util.tree_flatten(like_a)
+    lb, def_b = jax.tree_util.tree_flatten(like_b)
+    if not len(zs) == len(la) == len(lb):
+        raise ValueError("split_states: the joint batch and the parts are different kinds of state")
+    out_a, out_b = [], []
+    for z, x, y in zip(zs, la, lb):
+        if z.ndim and len(x.shape) == len(y.shape) == z.ndim \
+                and x.shape[0] + y.shape[0] == z.shape[0]:
+            out_a.append(z[:x.shape[0]])
+            out_b.append(z[x.shape[0]:])
+        elif z.shape == tuple(x.shape) == tuple(y.shape):
+            out_a.append(z)
+            out_b.append(z)
+        else:
+            raise ValueError(f"split_states: a leaf of shape {z.shape} does not split into "
+                             f"{tuple(x.shape)} and {tuple(y.shape)}")
+    return jax.tree_util.tree_unflatten(def_a, out_a), jax.tree_util.tree_unflatten(def_b, out_b)
+
+
 class GoalMazeEnv:
     """Base of the ant and point-mass mazes: a Brax-compatible, goal-conditioned interface."""
 

@@ -292,3 +292,46 @@ def test_second_physics_step_path_equals_the_batched_one():
     assert int(sep.inband.episodes) > 0
     for k in m_bat[-1]:
         np.testing.assert_array_equal(np.asarray(m_sep[-1][k]), np.asarray(m_bat[-1][k]), err_msg=k)
+
+
+def test_warp_inband_envs_share_the_training_physics_batch():
+    """On MuJoCo Warp the in-band envs join the training envs in one physics batch
+    (`envs.goal_env.join_states`: per-world arrays and the contact buffers shared by a batch's
+    worlds concatenated, split again after the step). Each world steps alone on Warp, so training
+    state, in-band state and metrics equal those of the path with a second physics step; in a
+    two-seed group each seed matches its separate run."""
+    from envs.ant_maze import warp_available
+    if not warp_available():
+        pytest.skip("warp-lang is not installed")
+    from dscpp_jax import seed_group as SG
+    from dscpp_jax.config import preset
+    cfg = preset("fast", "u_maze", "td3_her", physics="warp", num_envs=2, steps_per_iter=12,
+                 episode_length=5, warmup_episodes=0, td3_hidden=16, td3_batch_size=16,
+                 td3_updates_per_step=0.1, replay_capacity=500, eval_episodes=1,
+                 inband_eval_envs=2)
+    sep, m_sep, _ = _run(cfg.override(inband_eval_batched=False), 1)
+    bat, m_bat, _ = _run(cfg, 1)
+    assert int(bat.inband.episodes) == 4   # two 5-step episodes per in-band env finished
+    # everything but the contact scratch that every step rewrites: the buffers shared by a
+    # batch's worlds (their split halves hold the contacts in the joint batch's order) and each
+    # constraint's index into them (`efc__id`)
+    scratch = ("contact__", "nacon", "ncollision", "efc__id")
+    def per_world(state):
+        paths = jax.tree_util.tree_leaves_with_path(ck.to_storable(state))
+        return {jax.tree_util.keystr(p): x for p, x in paths
+                if not any(n in jax.tree_util.keystr(p) for n in scratch)}
+    a, b = per_world(sep.replace(config=bat.config)), per_world(bat)
+    assert a.keys() == b.keys() and len(a) > 100
+    differ = [k for k in a if not np.array_equal(np.asarray(a[k]), np.asarray(b[k]))]
+    assert differ == [], differ
+    for k in m_bat[-1]:
+        np.testing.assert_array_equal(np.asarray(m_sep[-1][k]), np.asarray(m_bat[-1][k]), err_msg=k)
+    states, _ = SG.train_step_group(SG.init_group([0, 1], cfg))
+    for i in (0, 1):
+        one, _ = T.train_step(T.init(jax.random.PRNGKey(i), cfg))
+        got = SG.seed_state(states, i)
+        for a, b in ((got.td3, one.td3), (got.inband.success, one.inband.success),
+                     (got.inband.env_state.obs, one.inband.env_state.obs),
+                     (got.env_state.obs, one.env_state.obs)):
+            for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
+                np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-3, atol=1e-4)
