@@ -345,8 +345,9 @@ def preset(name: str = "fast", env: str = "point_u_maze", algo: str = "mb_dscpp"
       paper's 1 step per transition at batch 512 and 3e-4 with an L2 action penalty of 1 (model
       free); TD targets clipped to [-1 / (1 - discount), 0] (keeps the model-based critic stable);
       32 minibatches per replay sampling call (speed); RK4 (fewer tip-overs); gestation 5 (10 on
-      four rooms, appendix Table 4); up to 24 options; 16 evaluation episodes every 25
-      iterations; stops at 2,001 episodes (or 4M env steps).
+      four rooms, appendix Table 4); up to 24 options; evaluation inside training (32 in-band
+      envs, success every iteration) and 100 episodes at the end instead of periodic
+      evaluations; stops at 2,001 episodes (or 4M env steps).
 
     Why each setting, with the measurements: docs/training.md ("Presets") and
     experiments/results/train_ant/README.md.
@@ -383,7 +384,7 @@ def preset(name: str = "fast", env: str = "point_u_maze", algo: str = "mb_dscpp"
             mpc_dtype="bfloat16", max_options=24, td3_clip_targets=True,
             ant_integrator="RK4", td3_sample_block=32,
             td3_action_l2=0.0 if algo in MODEL_BASED_ALGOS else 1.0,
-            eval_every=25, eval_episodes=16, checkpoint_every=25,
+            inband_eval_envs=32, eval_every=0, eval_episodes=100, checkpoint_every=25,
         )
     base.update(overrides)
     return Config(**base)

@@ -115,7 +115,8 @@ def main(argv=None) -> int:
 
     from dscpp_jax.config import preset
     from dscpp_jax.run_logging import library_versions
-    kw = dict(SMALL) if args.small else {}
+    # training alone, as the recorded figures: no in-band evaluation unless --set asks for it
+    kw = dict(SMALL, inband_eval_envs=0) if args.small else {"inband_eval_envs": 0}
     kw.update(_overrides(args.set))
     sizes = [int(x) for x in args.seeds_list.split(",") if x.strip()]
     dev = jax.local_devices()[0]

@@ -104,7 +104,8 @@ def main(argv=None):
     import jax
 
     from dscpp_jax.config import parse_value
-    overrides = dict(SMALL) if args.small else {}
+    # training alone unless --set asks for in-band evaluation envs
+    overrides = dict(SMALL, inband_eval_envs=0) if args.small else {"inband_eval_envs": 0}
     for kv in args.set:
         k, v = kv.split("=", 1)
         overrides[k] = parse_value(k, v)

@@ -115,7 +115,7 @@ def main(argv=None) -> int:
     import jax
 
     from dscpp_jax.config import parse_value
-    overrides = {}
+    overrides = {"inband_eval_envs": 0}   # training alone unless --set asks for in-band envs
     for s in args.set:
         name, v = s.split("=", 1)
         overrides[name] = parse_value(name, v)

@@ -352,8 +352,16 @@ def train_all(args, figs: dict) -> dict:
 # ------------------------------------------------------------------------------------------------
 # Curves from metrics.csv
 # ------------------------------------------------------------------------------------------------
-def curves(dirs, column: str, x: str = "episodes") -> list:
+def curves(dirs, column: str, x: str = "episodes", inband: bool = True) -> list:
+    """One curve per run dir. Success from the start ("eval/success_rate") comes from the in-band
+    evaluation (every iteration; the ant preset's default) where the runs have it, else from the
+    periodic evaluations; ``inband=False`` keeps the evaluations' column (the final 100 episodes
+    where evaluation runs only at the end)."""
     from dscpp_jax.plots import _curve
+    if inband and column == "eval/success_rate":
+        cs = [c for c in (_curve(d, "inband/success_rate", x) for d in dirs) if c is not None]
+        if cs:
+            return cs
     return [c for c in (_curve(d, column, x) for d in dirs) if c is not None]
 
 
@@ -472,7 +480,7 @@ def fig6(data: Data, out: str) -> Optional[str]:
     hline = None
     long = [e for e in data.figs["6"] if e.tag == "long"]
     if long:
-        cs = curves(data.dirs(long[0]), "eval/success_rate")
+        cs = curves(data.dirs(long[0]), "eval/success_rate", inband=False)
         if cs:
             hline = (_maze_title("u_maze", data.args.env_map), float(finals(cs).mean()),
                      f"TD3+HER after {long[0].episodes} episodes (n={len(cs)})")
@@ -719,7 +727,7 @@ def claims(data: Data, args, figures: dict) -> list:
     fig6_exps = [e for e in data.figs.get("6", []) if e.tag != "long"]
 
     def final(exp, col="eval/success_rate", reduce="last"):
-        cs = curves(data.dirs(exp), col)
+        cs = curves(data.dirs(exp), col, inband=reduce != "last")
         if not cs:
             return None
         return finals(cs) if reduce == "last" else np.array([c[1].max() for c in cs])

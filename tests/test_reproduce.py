@@ -150,3 +150,29 @@ def test_bad_figure_and_a2_only(tmp_path, capsys):
                            "--report-only"]) == 0
     readme = open(os.path.join(out, "README.md")).read()
     assert readme.count("| not run") == readme.count("\n| ") - 1   # every claim: not run
+
+
+def test_success_curves_come_from_in_band_evaluation_where_runs_have_it(tmp_path):
+    """Runs with in-band evaluation (the ant preset's default) draw success from
+    `inband/success_rate` (rows before the first finished in-band episode left out); the final
+    success of a claim stays the last evaluation's."""
+    from dscpp_jax.run_logging import RunLogger
+    inb, per = str(tmp_path / "inband"), str(tmp_path / "periodic")
+    for d, rows in ((inb, [dict(inband_w=0, inband=0.0), dict(inband_w=4, inband=0.5),
+                           dict(inband_w=4, inband=0.75, ev=0.9)]),
+                    (per, [dict(ev=0.25), dict(), dict(ev=0.5)])):
+        log = RunLogger(d)
+        for i, r in enumerate(rows, 1):
+            row = {"iteration": i, "env_steps": 100 * i, "episodes": 10 * i}
+            if "inband" in r:
+                row.update({"inband/success_rate": r["inband"], "inband/window": r["inband_w"]})
+            if "ev" in r:
+                row["eval/success_rate"] = r["ev"]
+            log.log(row)
+        log.close()
+    (x, y), = reproduce.curves([inb], "eval/success_rate")
+    assert x.tolist() == [20.0, 30.0] and y.tolist() == [0.5, 0.75]
+    (x, y), = reproduce.curves([inb], "eval/success_rate", inband=False)
+    assert x.tolist() == [30.0] and y.tolist() == [0.9]
+    (x, y), = reproduce.curves([per], "eval/success_rate")
+    assert x.tolist() == [10.0, 30.0] and y.tolist() == [0.25, 0.5]

@@ -333,7 +333,8 @@ def test_warp_physics_group_equals_separate_runs():
     from dscpp_jax.config import preset
     cfg = preset("fast", "u_maze", "td3_her", physics="warp", num_envs=2, steps_per_iter=10,
                  episode_length=50, warmup_episodes=0, td3_hidden=16, td3_batch_size=16,
-                 td3_updates_per_step=0.1, replay_capacity=500, eval_episodes=1)
+                 td3_updates_per_step=0.1, replay_capacity=500, eval_episodes=1,
+                 inband_eval_envs=0)
     states = SG.init_group([0, 1], cfg)
     assert states.config.group_size == 2
     states, m = SG.train_step_group(states)
@@ -357,7 +358,8 @@ def test_warp_group_seed_directory_evaluates(tmp_path):
     from dscpp_jax.evaluate import evaluate
     cfg = preset("fast", "u_maze", "td3_her", physics="warp", num_envs=2, steps_per_iter=10,
                  episode_length=20, warmup_episodes=0, td3_hidden=16, td3_batch_size=16,
-                 td3_updates_per_step=0.1, replay_capacity=500, eval_episodes=1, eval_every=0)
+                 td3_updates_per_step=0.1, replay_capacity=500, eval_episodes=1, eval_every=0,
+                 inband_eval_envs=0)
     states, group, _ = group_train.train_group(cfg, [0, 1], str(tmp_path / "g"), progress=False,
                                                max_iterations=1)
     got_cfg, one = load_run(os.path.join(group, "s1"))

@@ -256,7 +256,8 @@ def test_nan_physics_ends_that_episode_and_stays_out_of_learning():
                  episode_length=50, max_options=4, max_pos_traj=4, max_neg=4, buffer_len=10,
                  option_timeout=20, td3_hidden=16, td3_batch_size=8, replay_capacity=100,
                  model_capacity=100, dyn_hidden=16, dyn_batch_size=8, dyn_pretrain_steps=1,
-                 mpc_samples=8, mpc_horizon=2, mpc_dtype="float32", eval_every=0)
+                 mpc_samples=8, mpc_horizon=2, mpc_dtype="float32", eval_every=0,
+                 inband_eval_envs=0)
     s = T.init(jax.random.PRNGKey(0), cfg)
     d = s.env_state.pipeline_state
     bad = s.replace(env_state=s.env_state.replace(
