@@ -162,6 +162,7 @@ def train_group(cfg: Config, seeds: Sequence[int], group_dir: Optional[str] = No
         print(f"WARNING: {cfg.env} is an MJX ant environment meant for a GPU; on a CPU it is very "
               f"slow. Use a point-mass twin (e.g. point_{cfg.env}) for CPU runs.", file=sys.stderr)
 
+    prewarm = T.prewarm_physics(cfg.override(group_size=n))   # Warp kernels build meanwhile
     states = SG.init_group(seeds, cfg, mesh)
     ckpt = SG.GroupCheckpointer(group_dir, keep=cfg.keep_checkpoints)
     restored = resume and ckpt.latest_step() is not None
@@ -204,6 +205,10 @@ def train_group(cfg: Config, seeds: Sequence[int], group_dir: Optional[str] = No
         except Exception:  # noqa: BLE001
             pbar = None
     t_start = time.time()
+    if prewarm is not None:   # compile the step ahead of time, then let the kernels finish
+        fn, placed, all_active = SG.group_step_program(states, mesh)
+        fn.lower(placed, all_active).compile()
+        prewarm.join()
     last_eval = np.full((n,), np.nan)
     inband = np.full((n,), np.nan)     # in-band success per seed (NaN: none finished yet)
     options = np.full((n,), np.nan)

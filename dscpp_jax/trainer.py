@@ -30,6 +30,7 @@ and option state, and a ring of the last finished outcomes); metrics `inband/*`.
 from __future__ import annotations
 
 import functools
+import threading
 from typing import Any, Dict, Optional, Tuple
 
 import flax.struct
@@ -180,6 +181,29 @@ def step_env(config: Config):
     if config.inband_eval_envs > 0 and inband_batched(config):
         return joint_env(config)
     return make_env(config)
+
+
+def prewarm_physics(config: Config) -> Optional[threading.Thread]:
+    """On MuJoCo Warp with a GPU, start building Warp's kernels for `config`'s env in a thread
+    (`AntMazeEnv.build_warp_kernels`, outside JAX) and return it; None elsewhere. Warp compiles a
+    kernel at its first launch, which otherwise comes only after XLA has compiled `train_step`;
+    this lets the two compilers work at once. Join the thread before the first `train_step` runs
+    (compile it ahead of time with ``train_step.lower(state).compile()``). A failure here is left
+    for the real step to report."""
+    config = resolve_physics(config)
+    if config.physics != "warp" or config.env.startswith("point_") or jax.default_backend() != "gpu":
+        return None
+    env = step_env(config)   # built here: the env cache is no lock
+
+    def work():
+        try:
+            env.build_warp_kernels()
+        except Exception:  # noqa: BLE001 - only a head start
+            pass
+
+    thread = threading.Thread(target=work, name="warp-kernel-build", daemon=True)
+    thread.start()
+    return thread
 
 
 INBAND_KEY_SALT = 0x1B_E7A1

@@ -23,6 +23,7 @@ pipeline (much faster). `mujoco_c_step` steps the identical model in MuJoCo C (t
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 from typing import Optional
 
@@ -326,6 +327,40 @@ class AntMazeEnv(GoalMazeEnv):
         if self.config.physics != "warp":
             return jnp.zeros((), bool)
         return (data._impl.overflow & WARP_BUFFER_OVERFLOWS) != 0
+
+    def build_warp_kernels(self, device: Optional[str] = None) -> bool:
+        """Build MuJoCo Warp's kernels for this model now, outside JAX: one physics step of a
+        one-world batch through MuJoCo Warp itself, on a Warp stream of its own (Warp compiles a
+        kernel at its first launch and keeps it in its kernel cache; the JAX step finds it there).
+        Safe to run in a thread while XLA compiles, since it never touches XLA's stream. ``device``:
+        a Warp device name (default: the first CUDA device). Returns False where there is nothing
+        to build (MJX-JAX physics, or no such device)."""
+        if self.config.physics != "warp":
+            return False
+        import warp as wp
+        from mujoco.mjx.third_party import mujoco_warp as mjwarp
+        if device is None:
+            if not wp.is_cuda_available():
+                return False
+            device = "cuda:0"
+        dev = wp.get_device(device)
+        with wp.ScopedDevice(dev):
+            stream = wp.Stream(dev) if dev.is_cuda else None
+            with wp.ScopedStream(stream) if stream is not None else contextlib.nullcontext():
+                m = mjwarp.put_model(self.mj_model)
+                # the scalar options the env's model runs with (e.g. warn_overflow) pick kernels
+                impl = self.mjx_model.opt._impl
+                for f in dataclasses.fields(m.opt):
+                    v = getattr(impl, f.name, None)
+                    if isinstance(v, (bool, int, float)) and type(v) is type(getattr(m.opt, f.name)):
+                        setattr(m.opt, f.name, v)
+                d = mjwarp.make_data(self.mj_model, nworld=1,
+                                     naconmax=self.config.warp_contacts_per_world,
+                                     njmax=self.config.warp_constraints_per_world)
+                mjwarp.step(m, d)
+            if stream is not None:
+                wp.synchronize_stream(stream)
+        return True
 
     @property
     def dt(self) -> float:

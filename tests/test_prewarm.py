@@ -1,0 +1,70 @@
+"""Building MuJoCo Warp's kernels while XLA compiles (`trainer.prewarm_physics`): the training
+loops compile their step ahead of time and wait for the kernel build before the first step,
+without compiling the step twice; `AntMazeEnv.build_warp_kernels` steps the model through MuJoCo
+Warp outside JAX."""
+import threading
+
+import jax
+import pytest
+
+from dscpp_jax import trainer as T
+from tests.trainer_fixtures import tiny
+
+
+def _started_thread(ran):
+    t = threading.Thread(target=lambda: ran.append(1))
+    t.start()
+    return t
+
+
+def _compiles(fn):
+    """(fn's result, the names of the functions XLA compiled meanwhile)."""
+    events = []
+    def listen(event, duration, **kw):
+        if event == "/jax/core/compile/backend_compile_duration":
+            events.append(kw.get("fun_name"))
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        out = fn()
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+    return out, events
+
+
+def test_loops_compile_ahead_and_wait_for_the_kernel_build(tmp_path, monkeypatch):
+    # on a CPU there is nothing to build (prewarm_physics returns None); stand in a thread so
+    # that the single-run and the group loop take the path they take on a GPU. The runs with it
+    # use a config of their own, so their step compiles afresh: the ahead-of-time compile must be
+    # the only compile of the step, as the first call is without it.
+    from dscpp_jax import group_train
+    from dscpp_jax.cli import train
+    assert T.prewarm_physics(tiny("td3_her")) is None
+    cfgs = [tiny("td3_her", total_env_steps=160, td3_hidden=h) for h in (24, 40)]
+    (state, _), plain = _compiles(lambda: train(cfgs[0], str(tmp_path / "a"), progress=False))
+    (_, _, _), plain_group = _compiles(lambda: group_train.train_group(
+        cfgs[0], [0, 1], str(tmp_path / "ga"), progress=False))
+    ran = []
+    monkeypatch.setattr(T, "prewarm_physics", lambda cfg: _started_thread(ran))
+    (state, _), ahead = _compiles(lambda: train(cfgs[1], str(tmp_path / "b"), progress=False))
+    assert int(state.counters.iteration) == 2 and ran == [1]
+    (states, _, _), ahead_group = _compiles(lambda: group_train.train_group(
+        cfgs[1], [0, 1], str(tmp_path / "gb"), progress=False))
+    assert ran == [1, 1] and [int(i) for i in states.counters.iteration] == [2, 2]
+    # the step programs: train_step_impl (single run), step (the group's shard_map body)
+    def steps(names, step):
+        return sum(n == f"jit({step})" for n in names)
+    assert steps(plain, "train_step_impl") == steps(ahead, "train_step_impl") == 1
+    assert steps(plain_group, "step") == steps(ahead_group, "step") == 1
+
+
+def test_build_warp_kernels_steps_the_model_outside_jax():
+    from envs.ant_maze import warp_available
+    import envs
+    assert envs.make("u_maze", physics="jax").build_warp_kernels("cpu") is False
+    if not warp_available():
+        pytest.skip("warp-lang is not installed")
+    env = envs.make("u_maze", physics="warp", warp_worlds=2)
+    assert env.build_warp_kernels("cpu") is True
+    if jax.default_backend() != "gpu":
+        import warp as wp
+        assert env.build_warp_kernels() is wp.is_cuda_available()
