@@ -71,8 +71,8 @@ def test_option_update_uses_only_its_own_transitions_and_idle_options_keep_their
     leaves = jax.tree_util.tree_leaves(init)
     assert all(x.shape[0] == K for x in leaves)
     # initialised like the shared TD3, one key each
-    assert_trees_equal(td3_option(init, 1),
-                       td3_init(jax.random.split(jax.random.key(0), K)[1], OBS, GOAL, ACT, CFG))
+    one = jax.jit(lambda k: td3_init(k, OBS, GOAL, ACT, CFG))   # jitted: eager init costs ~4 s
+    assert_trees_equal(td3_option(init, 1), one(jax.random.split(jax.random.key(0), K)[1]))
     key = jax.random.key(5)
     buf = _buffer(0)
     new, m = _per_option(init, buf, key)
@@ -118,8 +118,13 @@ def test_masked_view_samples_only_that_options_transitions():
         assert np.all(own | kept)
 
 
+# per-option critics end to end: DP subgoals (each option's critic scores its subgoals and its row
+# of the table) and in-band evaluation on. The tests below share its init and train_step programs.
+_E2E = tiny("mf_dscpp", shared_critic=False, subgoal="dp", warmup_episodes=0, inband_eval_envs=2)
+
+
 def test_each_env_acts_with_its_options_actor():
-    cfg = tiny("mf_dscpp", shared_critic=False)
+    cfg = _E2E
     s = T.init(jax.random.PRNGKey(0), cfg)
     tcfg = T.td3_config(s.config)
     obs = jax.random.normal(jax.random.key(1), (5, s.env_state.obs.shape[-1]))
@@ -139,15 +144,13 @@ def test_model_based_with_per_option_critics_is_rejected():
         tiny("mf_dscpp", shared_critic=1).validate()
 
 
-_E2E = tiny("mf_dscpp", shared_critic=False, subgoal="dp", warmup_episodes=0, inband_eval_envs=2)
-
-
 def test_mf_dscpp_per_option_trains_evaluates_and_resumes_exactly(tmp_path):
     """DP subgoals (each option's critic scores its subgoals and its row of the table) and in-band
     evaluation on."""
     cfg = _E2E
     s0 = T.init(jax.random.PRNGKey(3), cfg)
-    assert T.init(jax.random.PRNGKey(3), cfg.override(shared_critic=True)).replay.data.option is None
+    shared = jax.eval_shape(lambda: T.init(jax.random.PRNGKey(3), cfg.override(shared_critic=True)))
+    assert shared.replay.data.option is None         # (traced only: no init program compiled)
     straight = s0
     for _ in range(4):
         straight, m = T.train_step(straight)

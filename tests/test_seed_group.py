@@ -323,6 +323,16 @@ def test_two_processes_equal_one(ref, background):
                         load_run(os.path.join(ref, f"s{s}"))[1])
 
 
+def _warp_config(**kw):
+    """The ant U-maze on MuJoCo Warp, tiny: both Warp tests use it, so that the group programs the
+    first compiles serve the second."""
+    from dscpp_jax.config import preset
+    return preset("fast", "u_maze", "td3_her", physics="warp", num_envs=2, steps_per_iter=10,
+                  episode_length=20, warmup_episodes=0, td3_hidden=16, td3_batch_size=16,
+                  td3_updates_per_step=0.1, replay_capacity=500, eval_episodes=1,
+                  inband_eval_envs=0, **kw)
+
+
 def test_warp_physics_group_equals_separate_runs():
     """MuJoCo Warp's Data batches itself under vmap (its contact buffers are shared by all worlds of
     the group, not split per seed): a group of two ant seeds on Warp steps and evaluates, and each
@@ -330,11 +340,7 @@ def test_warp_physics_group_equals_separate_runs():
     from envs.ant_maze import warp_available
     if not warp_available():
         pytest.skip("warp-lang is not installed")
-    from dscpp_jax.config import preset
-    cfg = preset("fast", "u_maze", "td3_her", physics="warp", num_envs=2, steps_per_iter=10,
-                 episode_length=50, warmup_episodes=0, td3_hidden=16, td3_batch_size=16,
-                 td3_updates_per_step=0.1, replay_capacity=500, eval_episodes=1,
-                 inband_eval_envs=0)
+    cfg = _warp_config()
     states = SG.init_group([0, 1], cfg)
     assert states.config.group_size == 2
     states, m = SG.train_step_group(states)
@@ -354,12 +360,8 @@ def test_warp_group_seed_directory_evaluates(tmp_path):
     if not warp_available():
         pytest.skip("warp-lang is not installed")
     from dscpp_jax import group_train
-    from dscpp_jax.config import preset
     from dscpp_jax.evaluate import evaluate
-    cfg = preset("fast", "u_maze", "td3_her", physics="warp", num_envs=2, steps_per_iter=10,
-                 episode_length=20, warmup_episodes=0, td3_hidden=16, td3_batch_size=16,
-                 td3_updates_per_step=0.1, replay_capacity=500, eval_episodes=1, eval_every=0,
-                 inband_eval_envs=0)
+    cfg = _warp_config(eval_every=0)   # the group program of the test above (eval_every: host only)
     states, group, _ = group_train.train_group(cfg, [0, 1], str(tmp_path / "g"), progress=False,
                                                max_iterations=1)
     got_cfg, one = load_run(os.path.join(group, "s1"))

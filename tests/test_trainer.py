@@ -70,8 +70,13 @@ def test_old_run_configs_with_removed_fields_still_load():
     assert "td3_absorb_fallen" not in Config().to_dict()
 
 
+# tiny mb_dscpp with DP subgoals and warm-up: the no-retracing, policy and every-algorithm tests
+# share its train_step and evaluate programs (each compile costs more than all their iterations)
+MB_DP = tiny("mb_dscpp", subgoal="dp")
+
+
 def test_no_retracing_across_iterations():
-    cfg = tiny("mb_dscpp")
+    cfg = MB_DP
     s = T.init(jax.random.PRNGKey(0), cfg)
     s, _ = T.train_step(s)
     n_train = T.train_step._cache_size()
@@ -132,13 +137,13 @@ def test_evaluate_has_no_side_effects_and_takes_starts():
     summary, res = dscpp_jax.evaluate(s, starts=[goal + 0.1, [0.0, 0.0]])
     assert bool(res.success[0]) and int(res.steps[0]) == 1
     # deterministic: same key, same result
-    a = dscpp_jax.evaluate(s, jax.random.PRNGKey(5), 2)[1]
-    b = dscpp_jax.evaluate(s, jax.random.PRNGKey(5), 2)[1]
+    a = dscpp_jax.evaluate(s, jax.random.PRNGKey(5), 3)[1]
+    b = dscpp_jax.evaluate(s, jax.random.PRNGKey(5), 3)[1]
     np.testing.assert_array_equal(np.asarray(a.xy), np.asarray(b.xy))
 
 
 def test_make_policy_runs_in_a_jitted_scan():
-    cfg = tiny("mb_dscpp")
+    cfg = MB_DP
     s = T.init(jax.random.PRNGKey(2), cfg)
     s, _ = T.train_step(s)
     env = T.make_env(cfg)
@@ -169,18 +174,23 @@ def test_options_time_out_after_exactly_option_timeout_steps():
     xy = s.env_state.obs[:, :2]
     ex = s.exec.replace(option=jnp.zeros((B,), jnp.int32), subgoal=far,
                         opt_steps=jnp.zeros((B,), jnp.int32))
+
+    @jax.jit
+    def train_step_end(ex):
+        ex = T._push_traj(ex, xy)               # training: one step taken, then the end test
+        return ex, T._option_end(s.config, env, s.chain, ex, xy, jnp.zeros((B,)))[0]
     ends = []
     for _ in range(cfg.option_timeout + 1):
-        ex = T._push_traj(ex, xy)               # training: one step taken, then the end test
-        ended, _ = T._option_end(s.config, env, s.chain, ex, xy, jnp.zeros((B,)))
+        ex, ended = train_step_end(ex)
         ends.append(bool(ended.all()) if bool(ended.any()) else False)
     assert ends.index(True) == cfg.option_timeout - 1   # ends right after step 40
     # the policy constructor counts the same way: 40 steps of one execution, then a new one
     policy = dscpp_jax.make_policy(s)
     pc = policy.init(s.env_state.obs)
+    step = jax.jit(policy.step)
     counts = []
     for i in range(cfg.option_timeout + 1):
-        pc, _, _ = policy.step(pc.replace(subgoal=jnp.where(pc.option[:, None] >= 0, far, pc.subgoal)),
+        pc, _, _ = step(pc.replace(subgoal=jnp.where(pc.option[:, None] >= 0, far, pc.subgoal)),
                                s.env_state.obs, jax.random.PRNGKey(i))
         counts.append(int(pc.opt_steps[0]))
     assert counts == list(range(1, cfg.option_timeout + 1)) + [1]
@@ -188,7 +198,7 @@ def test_options_time_out_after_exactly_option_timeout_steps():
 
 def test_nan_in_learning_stops_with_a_message(tmp_path):
     from dscpp_jax.cli import TrainingDiverged, train
-    cfg = tiny("mf_dscpp", warmup_episodes=0)
+    cfg = tiny("mf_dscpp")      # compiled above; TD3 updates (and the finite check) run in warm-up
     s = T.init(jax.random.PRNGKey(0), cfg)
     bad = s.replace(td3=s.td3.replace(critic_params=jax.tree_util.tree_map(
         lambda x: jnp.full_like(x, jnp.nan), s.td3.critic_params)))
@@ -237,10 +247,11 @@ def test_mb_dscpp_learns_point_four_rooms():
                                           ("mb_flat_value", "robust"), ("dsc", "robust"),
                                           ("mb_dscpp", "dp")])
 def test_every_algorithm_trains_and_evaluates(algo, subgoal):
-    cfg = tiny(algo, subgoal=subgoal, warmup_episodes=0)
+    cfg = tiny(algo, subgoal=subgoal)     # mb_dscpp/dp: MB_DP, compiled by the tests above
     s = T.init(jax.random.PRNGKey(0), cfg)
-    for _ in range(3):
+    for _ in range(7):                     # warm-up ends in iteration 5; two iterations after it
         s, m = T.train_step(s)
+    assert float(m["train/warmup"]) == 0.0
     assert all(np.isfinite(v) for k, v in m.items() if k.startswith(("td3/", "dynamics/")))
     assert (s.dyn is not None) == cfg.model_based and (s.chain is not None) == cfg.hierarchical
     summary, res = dscpp_jax.evaluate(s, jax.random.PRNGKey(0), 2)
@@ -298,13 +309,21 @@ def test_gpu_kernels_inside_train_step_interpreted():
     # The fused SMO kernel (svm_backend="pallas") and the fused MPC kernel with the value net
     # inside (mpc_backend="pallas") wired through train_step and evaluate, run in Pallas interpret
     # mode on the CPU. The SMO kernel takes the XLA loop's path: the same chain comes out.
+    # Trained: XLA vs Pallas SMO, both with the fused MPC kernel (each compile here costs ~15 s);
+    # the XLA MPC (every other test's) is traced only, to see that no kernel is in its program.
     base = dict(warmup_episodes=0, gestation=1, mpc_dtype="bfloat16", mpc_samples=16)
+
+    def kernels(state):
+        return set(re.findall(r"name=(\w+)", str(jax.make_jaxpr(T.train_step_impl)(state))))
+    cfg = tiny("mb_dscpp", svm_backend="pallas", mpc_backend="xla", **base)
+    names = kernels(jax.eval_shape(lambda: T.init(jax.random.PRNGKey(4), cfg)))
+    assert "smo" in names and "mpc_rollout" not in names
     states = {}
-    for svm_backend, mpc_backend in (("xla", "xla"), ("pallas", "xla"), ("pallas", "pallas")):
+    for svm_backend, mpc_backend in (("xla", "pallas"), ("pallas", "pallas")):
         cfg = tiny("mb_dscpp", svm_backend=svm_backend, mpc_backend=mpc_backend, **base)
         s = T.init(jax.random.PRNGKey(4), cfg)
         s = s.replace(chain=_scripted_goal_option_outcomes(s))   # something for the refits
-        names = set(re.findall(r"name=(\w+)", str(jax.make_jaxpr(T.train_step_impl)(s))))
+        names = kernels(s)
         assert ("smo" in names) == (svm_backend == "pallas")          # the kernels are really used
         assert ("mpc_rollout" in names) == (mpc_backend == "pallas")
         for _ in range(3):
@@ -313,7 +332,7 @@ def test_gpu_kernels_inside_train_step_interpreted():
         summary, _ = dscpp_jax.evaluate(s, jax.random.PRNGKey(0), 2)
         assert 0.0 <= summary["eval/success_rate"] <= 1.0
         states[svm_backend, mpc_backend] = s
-    a, b = states["xla", "xla"].chain, states["pallas", "xla"].chain
+    a, b = states["xla", "pallas"].chain, states["pallas", "pallas"].chain
     assert bool(a.fitted[1:].any())                  # classifiers were really refit
     np.testing.assert_array_equal(np.asarray(a.fitted), np.asarray(b.fitted))
     for x, y in zip(jax.tree_util.tree_leaves(a.clf), jax.tree_util.tree_leaves(b.clf)):
