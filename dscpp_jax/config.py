@@ -124,7 +124,7 @@ class Config:
                                        # MJX (JAX) ant physics may round a B + E batch
                                        # differently, so training then matches a run without
                                        # in-band envs only to rounding; False keeps it bitwise.
-                                       # Point mass: exact either way; Warp: always a second step
+                                       # Point mass and MuJoCo Warp: exact either way
 
     # --- evaluation, logging, checkpoints (host side) -----------------------------------------
     eval_every: int = 10               # train_step calls between evaluations (0: never)
