@@ -1,6 +1,10 @@
 """Trainer: config validation, no retracing, vmap over seeds, evaluation without side effects,
 the policy constructor, NaN handling, and real learning on the point-mass U-maze."""
+import multiprocessing
+import os
 import re
+import sys
+from concurrent.futures import ProcessPoolExecutor
 
 import jax
 import jax.numpy as jnp
@@ -208,41 +212,6 @@ def test_nan_in_learning_stops_with_a_message(tmp_path):
     assert ck.latest_step(str(tmp_path / "run")) == 0
 
 
-def _learn_until(algo, max_iters, seed=0, env="point_u_maze", **kw):
-    """Train a point-mass maze with the CPU preset; evaluate every 4 iterations; stop at the
-    first evaluation with >= 80 % success from the task start. Returns (best summary, state)."""
-    cfg = preset("fast", env, algo, seed=seed, **kw)
-    s = T.init(jax.random.PRNGKey(seed), cfg)
-    summary = {"eval/success_rate": 0.0}
-    for i in range(1, max_iters + 1):
-        s, m = T.train_step(s)
-        if i >= 8 and i % 4 == 0:
-            summary, _ = dscpp_jax.evaluate(s, jax.random.PRNGKey(i), 8)
-            if summary["eval/success_rate"] >= 0.8:
-                break
-    return summary, s, m
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize("algo", ["mb_dscpp", "mf_dscpp"])
-def test_dscpp_learns_point_u_maze(algo):
-    # budget: at most 40 iterations x 1,600 env steps = 64k env steps (the runs we measured
-    # reached 100 % eval success after 32k (MB) and ~40k (MF) steps)
-    summary, s, m = _learn_until(algo, 40)
-    assert summary["eval/success_rate"] >= 0.8, (summary, int(s.counters.env_steps))
-    assert int(s.chain.num_options) >= 3          # global + goal option + at least one link
-    assert 0.0 <= summary["eval/chain_probability"] <= 1.0
-
-
-@pytest.mark.slow
-def test_mb_dscpp_learns_point_four_rooms():
-    # budget: 48 iterations x 1,600 = 77k env steps (3 measured seeds reached 100 % after 56-64k;
-    # experiments/results/train_point_four_rooms)
-    summary, s, m = _learn_until("mb_dscpp", 48, env="point_four_rooms")
-    assert summary["eval/success_rate"] >= 0.8, (summary, int(s.counters.env_steps))
-    assert int(s.chain.num_options) >= 4          # the chain spans at least two rooms
-
-
 @pytest.mark.parametrize("algo,subgoal", [("td3_her", "robust"), ("mb_flat", "robust"),
                                           ("mb_flat_value", "robust"), ("dsc", "robust"),
                                           ("mb_dscpp", "dp")])
@@ -340,3 +309,95 @@ def test_gpu_kernels_inside_train_step_interpreted():
                                    rtol=1e-5, atol=1e-6)
     with pytest.raises(ValueError, match="mpc_dtype=bfloat16"):
         tiny("mb_dscpp", mpc_backend="pallas").validate()
+
+
+# ------------------------------------------------------------------------------------------------
+# The learning runs (about two minutes of compiling and training between them) run in a worker
+# process that starts with this module, beside the tests above (compiling, on one core mostly);
+# their tests below wait for the results and check them here.
+# ------------------------------------------------------------------------------------------------
+def _learn_until(algo, max_iters, seed=0, env="point_u_maze", **kw):
+    """Train a point-mass maze with the CPU preset; evaluate every 4 iterations; stop at the
+    first evaluation with >= 80 % success from the task start. Returns (best summary, state)."""
+    cfg = preset("fast", env, algo, seed=seed, **kw)
+    s = T.init(jax.random.PRNGKey(seed), cfg)
+    summary = {"eval/success_rate": 0.0}
+    for i in range(1, max_iters + 1):
+        s, m = T.train_step(s)
+        if i >= 8 and i % 4 == 0:
+            summary, _ = dscpp_jax.evaluate(s, jax.random.PRNGKey(i), 8)
+            if summary["eval/success_rate"] >= 0.8:
+                break
+    return summary, s, m
+
+
+def _learn_job(algo, max_iters, env="point_u_maze"):
+    summary, s, _ = _learn_until(algo, max_iters, env=env)
+    return summary, int(s.counters.env_steps), int(s.chain.num_options)
+
+
+_JOBS = {   # test (node name) -> (function, arguments); the longest first
+    "test_mb_dscpp_learns_point_four_rooms": (_learn_job, ("mb_dscpp", 48, "point_four_rooms")),
+    "test_dscpp_learns_point_u_maze[mb_dscpp]": (_learn_job, ("mb_dscpp", 40)),
+    "test_dscpp_learns_point_u_maze[mf_dscpp]": (_learn_job, ("mf_dscpp", 40)),
+}
+
+
+def _worker_setup(path):
+    """The worker leaves one core to this process (XLA's CPU runtime would take them all: on two
+    cores the tests here would wait for it), and writes its stdout and stderr to a file (JAX's
+    and the ant's warnings)."""
+    cores = sorted(os.sched_getaffinity(0))
+    if len(cores) > 1:
+        for thread in os.listdir("/proc/self/task"):   # those started so far; later ones inherit
+            os.sched_setaffinity(int(thread), cores[1:])
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND)
+    os.dup2(fd, 1)
+    os.dup2(fd, 2)
+
+
+@pytest.fixture(scope="module", autouse=True)
+def background(request, tmp_path_factory):
+    """Starts the jobs of the selected tests in one worker process (spawned: a fresh JAX) before
+    the first test of this module runs; {test name: future}."""
+    here = sys.modules[__name__]
+    jobs = [n for n in _JOBS if any(getattr(item, "module", None) is here and item.name == n
+                                    for item in request.session.items)]
+    if not jobs:
+        yield {}
+        return
+    log = str(tmp_path_factory.mktemp("background") / "worker.log")
+    pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"),
+                               initializer=_worker_setup, initargs=(log,))
+    futures = {n: pool.submit(_JOBS[n][0], *_JOBS[n][1]) for n in jobs}
+    yield futures
+    pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _result(background, request):
+    """The test's job result from the worker (run here if it was not started there)."""
+    name = request.node.name
+    if name not in background:
+        fn, args = _JOBS[name]
+        return fn(*args)
+    return background[name].result(timeout=1800)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("algo", ["mb_dscpp", "mf_dscpp"])
+def test_dscpp_learns_point_u_maze(algo, background, request):
+    # budget: at most 40 iterations x 1,600 env steps = 64k env steps (the runs we measured
+    # reached 100 % eval success after 32k (MB) and ~40k (MF) steps)
+    summary, env_steps, num_options = _result(background, request)
+    assert summary["eval/success_rate"] >= 0.8, (summary, env_steps)
+    assert num_options >= 3          # global + goal option + at least one link
+    assert 0.0 <= summary["eval/chain_probability"] <= 1.0
+
+
+@pytest.mark.slow
+def test_mb_dscpp_learns_point_four_rooms(background, request):
+    # budget: 48 iterations x 1,600 = 77k env steps (3 measured seeds reached 100 % after 56-64k;
+    # experiments/results/train_point_four_rooms)
+    summary, env_steps, num_options = _result(background, request)
+    assert summary["eval/success_rate"] >= 0.8, (summary, env_steps)
+    assert num_options >= 4          # the chain spans at least two rooms
