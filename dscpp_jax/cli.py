@@ -192,7 +192,6 @@ def train(cfg: Optional[Config] = None, run_dir: Optional[str] = None, resume: b
         print(f"WARNING: {cfg.env} is an MJX ant environment meant for a GPU; on a CPU it is very "
               f"slow. Use a point-mass twin (e.g. point_{cfg.env}) for CPU runs.", file=sys.stderr)
 
-    prewarm = T.prewarm_physics(cfg)   # Warp's kernels build while XLA compiles
     key = jax.random.PRNGKey(cfg.seed)
     state = T.init(key, cfg) if initial_state is None else initial_state
     start_iter = 0
@@ -235,7 +234,10 @@ def train(cfg: Optional[Config] = None, run_dir: Optional[str] = None, resume: b
         except Exception:  # noqa: BLE001
             pbar = None
     t_start = time.time()
-    if prewarm is not None:   # compile the step ahead of time, then let the kernels finish
+    # Warp's kernels build in a thread while XLA compiles the step ahead of time; started only
+    # now: MuJoCo Warp launches from two threads at once crash (`init` steps the env through it)
+    prewarm = T.prewarm_physics(cfg)
+    if prewarm is not None:
         T.train_step.lower(state).compile()
         prewarm.join()
     wall0 = _previous_wall(run_dir)

@@ -162,7 +162,6 @@ def train_group(cfg: Config, seeds: Sequence[int], group_dir: Optional[str] = No
         print(f"WARNING: {cfg.env} is an MJX ant environment meant for a GPU; on a CPU it is very "
               f"slow. Use a point-mass twin (e.g. point_{cfg.env}) for CPU runs.", file=sys.stderr)
 
-    prewarm = T.prewarm_physics(cfg.override(group_size=n))   # Warp kernels build meanwhile
     states = SG.init_group(seeds, cfg, mesh)
     ckpt = SG.GroupCheckpointer(group_dir, keep=cfg.keep_checkpoints)
     restored = resume and ckpt.latest_step() is not None
@@ -205,7 +204,10 @@ def train_group(cfg: Config, seeds: Sequence[int], group_dir: Optional[str] = No
         except Exception:  # noqa: BLE001
             pbar = None
     t_start = time.time()
-    if prewarm is not None:   # compile the step ahead of time, then let the kernels finish
+    # Warp's kernels build in a thread while XLA compiles the group step ahead of time; started
+    # only now: MuJoCo Warp launches from two threads at once crash (`init_group` steps through it)
+    prewarm = T.prewarm_physics(cfg.override(group_size=n))
+    if prewarm is not None:
         fn, placed, all_active = SG.group_step_program(states, mesh)
         fn.lower(placed, all_active).compile()
         prewarm.join()

@@ -11,7 +11,8 @@ from dscpp_jax import trainer as T
 from tests.trainer_fixtures import tiny
 
 
-def _started_thread(ran):
+def _started_thread(ran, order):
+    order.append("prewarm")
     t = threading.Thread(target=lambda: ran.append(1))
     t.start()
     return t
@@ -43,13 +44,22 @@ def test_loops_compile_ahead_and_wait_for_the_kernel_build(tmp_path, monkeypatch
     (state, _), plain = _compiles(lambda: train(cfgs[0], str(tmp_path / "a"), progress=False))
     (_, _, _), plain_group = _compiles(lambda: group_train.train_group(
         cfgs[0], [0, 1], str(tmp_path / "ga"), progress=False))
-    ran = []
-    monkeypatch.setattr(T, "prewarm_physics", lambda cfg: _started_thread(ran))
+    ran, order = [], []
+    monkeypatch.setattr(T, "prewarm_physics", lambda cfg: _started_thread(ran, order))
+    # the thread starts only once the run's state exists: `init` steps the env through MuJoCo
+    # Warp, and Warp launches from two threads at once crash (seen on a GPU with warm caches)
+    from dscpp_jax import seed_group as SG
+    for mod, name in ((T, "init"), (SG, "init_group")):
+        real = getattr(mod, name)
+        monkeypatch.setattr(mod, name, lambda *a, _real=real, _n=name, **k: (
+            order.append(_n), _real(*a, **k))[1])
     (state, _), ahead = _compiles(lambda: train(cfgs[1], str(tmp_path / "b"), progress=False))
     assert int(state.counters.iteration) == 2 and ran == [1]
     (states, _, _), ahead_group = _compiles(lambda: group_train.train_group(
         cfgs[1], [0, 1], str(tmp_path / "gb"), progress=False))
     assert ran == [1, 1] and [int(i) for i in states.counters.iteration] == [2, 2]
+    # (init_group calls init once per seed)
+    assert order[:3] == ["init", "prewarm", "init_group"] and order[3:] == ["init", "init", "prewarm"], order
     # the step programs: train_step_impl (single run), step (the group's shard_map body)
     def steps(names, step):
         return sum(n == f"jit({step})" for n in names)
