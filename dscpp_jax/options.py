@@ -523,6 +523,7 @@ def chain_probability(chain: Chain) -> jax.Array:
 
 def chain_metrics(chain: Chain, start_xy=None) -> dict:
     """Scalars for logging under ``options/...`` (reduced on the device)."""
+    gest = chain.status == GESTATION
     m = {
         "num_options": chain.num_options,
         "num_mature": jnp.sum(chain.status == MATURE),
@@ -531,6 +532,10 @@ def chain_metrics(chain: Chain, start_xy=None) -> dict:
         "capacity_hit": chain.capacity_hit.astype(jnp.int32),
         "global_success_rate": success_rates(chain)[GLOBAL],
         "goal_success_rate": success_rates(chain)[GOAL],
+        # the option in gestation (the chain's frontier; 0 while none): how often it has been
+        # tried and has succeeded so far; it matures at `ChainConfig.gestation` successes
+        "gestation_executions": jnp.sum(jnp.where(gest, chain.executions, 0)),
+        "gestation_successes": jnp.sum(jnp.where(gest, chain.successes, 0)),
     }
     if start_xy is not None:
         m["start_covered"] = start_covered(chain, start_xy).astype(jnp.int32)

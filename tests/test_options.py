@@ -294,6 +294,18 @@ def test_gestation_maturity_growth(grown_chain):
         assert not bool(ch.dirty.any()) and bool(ch.fitted[1:4].all())
 
 
+def test_metrics_follow_the_option_in_gestation(grown_chain):
+    s, g = grown_chain, CFG.gestation
+    metrics = jax.jit(O.chain_metrics)
+    gest = metrics(s["link2_gestating"], START_XY)   # link 2: g - 1 successful executions so far
+    assert int(gest["num_gestation"]) == 1 and int(gest["num_mature"]) == 1
+    assert int(gest["gestation_executions"]) == int(gest["gestation_successes"]) == g - 1
+    fresh = metrics(s["link3_created"], START_XY)     # link 3 just created: never tried yet
+    assert int(fresh["gestation_executions"]) == int(fresh["gestation_successes"]) == 0
+    done = metrics(s["covered"], START_XY)            # nothing in gestation
+    assert int(done["num_gestation"]) == int(done["gestation_executions"]) == 0
+
+
 def test_growth_uses_the_given_start(grown_chain):
     ch = grown_chain["covered"]
     far = _uncovered_point(ch)
