@@ -499,14 +499,18 @@ def _rollout(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[s
         acc["ep_len_sum"] = acc["ep_len_sum"] + jnp.sum(jnp.where(done, nes.info["steps"], 0))
         ex = ex.replace(option=jnp.where(ended, NO_OPTION, ex.option))
 
-        # auto-reset finished episodes (diverse starts after warm-up)
+        # auto-reset finished episodes (diverse starts after warm-up). Whether the warm-up is
+        # over counts the episodes finished up to this step: the envs' first episodes all end
+        # on one step, and the episodes they begin there are the first after the warm-up
+        warm_next = state.counters.episodes + acc["episodes"] < config.warmup_episodes
+
         def reset_all(_):
             ks = jax.random.split(k_reset, B)
             if config.diverse_starts:
                 starts = jax.vmap(env.sample_start)(jax.random.split(k_start, B))
                 fresh_div = jax.vmap(env.reset_at)(ks, starts)
                 fresh_task = jax.vmap(env.reset)(ks)
-                fresh = select_state(warmup, fresh_task, fresh_div)
+                fresh = select_state(warm_next, fresh_task, fresh_div)
             else:
                 fresh = jax.vmap(env.reset)(ks)
             return select_states(done, fresh, nes)

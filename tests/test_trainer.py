@@ -97,6 +97,20 @@ def test_no_retracing_across_iterations():
     assert T.train_step._cache_size() == n_train
 
 
+def test_episodes_begun_after_the_warm_up_start_anywhere():
+    # MB_DP: 4 envs, 100-step episodes, 20 steps per iteration, warm-up of 2 episodes. The four
+    # first episodes (the warm-up, from the task start) all end on the last step of iteration 5;
+    # the episodes begun there are past the warm-up and start at diverse free states
+    cfg = MB_DP
+    s = T.init(jax.random.PRNGKey(0), cfg)
+    task_start = np.asarray(s.env_state.obs[:, :2])
+    for _ in range(5):
+        s, m = T.train_step(s)
+    assert int(s.counters.episodes) == cfg.num_envs and float(m["train/warmup"]) == 1.0
+    xy = np.asarray(s.env_state.obs[:, :2])
+    assert np.all(np.linalg.norm(xy - task_start, axis=-1) > 1.0), (xy, task_start)
+
+
 def test_vmap_over_seeds_equals_separate_runs():
     cfg = tiny("mf_dscpp")
     keys = jax.random.split(jax.random.PRNGKey(7), 2)
