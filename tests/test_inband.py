@@ -115,7 +115,9 @@ def test_inband_episodes_equal_evaluate_episodes(mb_runs):
     and length; the ring and metrics hold the finished episodes in order of finishing. A wide goal
     tolerance makes some episodes succeed, at different lengths, and restart."""
     _, _, (s_on, _, _) = mb_runs
-    cfg = s_on.config.override(goal_tolerance=7.0, inband_eval_envs=6, inband_eval_window=4)
+    # the task start is about 8 from the goal: at 7.8 most of the 6 episodes succeed within a few
+    # to ~20 steps and restart, and one runs to the limit (checked below)
+    cfg = s_on.config.override(goal_tolerance=7.8, inband_eval_envs=6, inband_eval_window=4)
     s = s_on.replace(config=cfg)
     env = T.inband_env(cfg)
     k = jax.random.PRNGKey(7)
