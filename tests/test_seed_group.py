@@ -253,7 +253,8 @@ json.dump(out, open(sys.argv[1], "w"))
 
 def _run_four_devices(path):
     r = subprocess.run([sys.executable, "-c", FOUR_DEVICES, path], cwd=ROOT, timeout=900,
-                       env=_env(XLA_FLAGS="--xla_force_host_platform_device_count=4"),
+                       env=_env(XLA_FLAGS=" ".join(filter(None, (
+                           os.environ.get("XLA_FLAGS"), "--xla_force_host_platform_device_count=4")))),
                        capture_output=True, text=True)
     return r.returncode, r.stderr[-3000:], path
 
