@@ -234,8 +234,7 @@ def train(cfg: Optional[Config] = None, run_dir: Optional[str] = None, resume: b
         except Exception:  # noqa: BLE001
             pbar = None
     t_start = time.time()
-    # Warp's kernels build in a thread while XLA compiles the step ahead of time; started only
-    # now: MuJoCo Warp launches from two threads at once crash (`init` steps the env through it)
+    # Warp's kernels build in a thread while XLA compiles the step ahead of time (after `init`)
     prewarm = T.prewarm_physics(cfg)
     if prewarm is not None:
         T.train_step.lower(state).compile()

@@ -204,8 +204,8 @@ def train_group(cfg: Config, seeds: Sequence[int], group_dir: Optional[str] = No
         except Exception:  # noqa: BLE001
             pbar = None
     t_start = time.time()
-    # Warp's kernels build in a thread while XLA compiles the group step ahead of time; started
-    # only now: MuJoCo Warp launches from two threads at once crash (`init_group` steps through it)
+    # Warp's kernels build in a thread while XLA compiles the group step ahead of time (after
+    # `init_group`; see `trainer.prewarm_physics`)
     prewarm = T.prewarm_physics(cfg.override(group_size=n))
     if prewarm is not None:
         fn, placed, all_active = SG.group_step_program(states, mesh)

@@ -187,9 +187,10 @@ def prewarm_physics(config: Config) -> Optional[threading.Thread]:
     """On MuJoCo Warp with a GPU, start building Warp's kernels for `config`'s env in a thread
     (`AntMazeEnv.build_warp_kernels`, outside JAX) and return it; None elsewhere. Warp compiles a
     kernel at its first launch, which otherwise comes only after XLA has compiled `train_step`;
-    this lets the two compilers work at once. Join the thread before the first `train_step` runs
-    (compile it ahead of time with ``train_step.lower(state).compile()``). A failure here is left
-    for the real step to report."""
+    this lets the two compilers work at once. Start it only once `init` has returned (MuJoCo Warp
+    launches from two threads at once crash, and `init` steps the env through it), and join it
+    before the first `train_step` runs (compile that ahead of time with
+    ``train_step.lower(state).compile()``). A failure here is left for the real step to report."""
     config = resolve_physics(config)
     if config.physics != "warp" or config.env.startswith("point_") or jax.default_backend() != "gpu":
         return None
