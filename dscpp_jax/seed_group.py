@@ -32,9 +32,16 @@ selects.
 
 The number of seeds must be a multiple of the number of devices (`check_group_size` names the
 valid sizes); groups are never padded.
+
+A program over several devices is lowered and compiled with JAX's GSPMD partitioner instead of
+Shardy (`GroupProgram`): with jax 0.11.2 XLA's GPU compiler segfaulted in its Shardy-to-XLA pass
+on every ant group program over two H100s (MJX or MuJoCo Warp physics, model-free or
+model-based), while the point-mass programs compiled either way. One-device programs keep JAX's
+default.
 """
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
 import re
@@ -201,6 +208,54 @@ def _vmap_axes(treedef, specs) -> PyTree:
         is_leaf=lambda x: _is_spec(x) or _vmappable(x))
 
 
+def uses_gspmd(mesh: Mesh) -> bool:
+    """Whether the group programs over `mesh` are partitioned by GSPMD rather than Shardy: every
+    mesh of more than one device (see the module's docstring)."""
+    return int(mesh.size) > 1
+
+
+def _partitioner(gspmd: bool):
+    if not gspmd:
+        return contextlib.nullcontext()
+    try:
+        from jax._src.config import use_shardy_partitioner
+    except ImportError:     # pragma: no cover - a JAX without the option has no Shardy either
+        return contextlib.nullcontext()
+    return use_shardy_partitioner(False)
+
+
+class GroupProgram:
+    """A jitted group program (`train_step_group`'s, `evaluate_group`'s) that traces, lowers and
+    compiles under the partitioner its mesh needs (`uses_gspmd`). Call it like the jitted
+    function, or ahead of time: ``program.lower(*args).compile()``."""
+
+    def __init__(self, jitted, mesh: Mesh):
+        self.jitted = jitted
+        self.gspmd = uses_gspmd(mesh)
+
+    def __call__(self, *args):
+        with _partitioner(self.gspmd):
+            return self.jitted(*args)
+
+    def lower(self, *args) -> "_Lowered":
+        with _partitioner(self.gspmd):
+            return _Lowered(self.jitted.lower(*args), self.gspmd)
+
+
+class _Lowered:
+    """A lowered group program whose `compile` keeps the partitioner it was lowered with."""
+
+    def __init__(self, lowered, gspmd: bool):
+        self.lowered, self.gspmd = lowered, gspmd
+
+    def compile(self, *args, **kwargs):
+        with _partitioner(self.gspmd):
+            return self.lowered.compile(*args, **kwargs)
+
+    def __getattr__(self, name):
+        return getattr(self.lowered, name)
+
+
 def _put(states: PyTree, mesh: Mesh, n: int) -> PyTree:
     """Place (or leave) a group state on `mesh` with the group shardings."""
     shardings = group_shardings(states, mesh, n)
@@ -283,7 +338,8 @@ def _step_fn(mesh: Mesh, treedef, specs: tuple):
                       check_vma=False)
     shard = jax.tree_util.tree_map(lambda s: NamedSharding(mesh, s), in_specs, is_leaf=_is_spec)
     seeds = NamedSharding(mesh, P(SEED_AXIS))
-    return jax.jit(f, in_shardings=(shard, seeds), out_shardings=(shard, seeds))
+    return GroupProgram(jax.jit(f, in_shardings=(shard, seeds), out_shardings=(shard, seeds)),
+                        mesh)
 
 
 def train_step_group(states: T.TrainState, active: Optional[Any] = None,
@@ -305,8 +361,9 @@ def train_step_group(states: T.TrainState, active: Optional[Any] = None,
 
 
 def group_step_program(states: T.TrainState, mesh: Optional[Mesh] = None):
-    """(jitted step, states placed on the mesh, all-active mask): what `train_step_group` calls,
-    for ahead-of-time use (``fn.lower(states, active).compile()``, e.g. to time compilation)."""
+    """(the step's `GroupProgram`, states placed on the mesh, all-active mask): what
+    `train_step_group` calls, for ahead-of-time use (``fn.lower(states, active).compile()``, e.g.
+    to time compilation)."""
     n = group_size(states)
     mesh = mesh_of(states) if mesh is None else mesh
     check_group_size(n, mesh)
@@ -341,7 +398,8 @@ def _eval_fn(mesh: Mesh, treedef, specs: tuple, num_episodes: int, with_starts: 
                       check_vma=False)
     shard = jax.tree_util.tree_map(lambda s: NamedSharding(mesh, s), in_specs, is_leaf=_is_spec)
     rep = NamedSharding(mesh, P())
-    return jax.jit(f, in_shardings=(shard, rep, rep), out_shardings=NamedSharding(mesh, P(SEED_AXIS)))
+    return GroupProgram(jax.jit(f, in_shardings=(shard, rep, rep),
+                                out_shardings=NamedSharding(mesh, P(SEED_AXIS))), mesh)
 
 
 def evaluate_group(states: T.TrainState, key: Optional[jax.Array] = None,
