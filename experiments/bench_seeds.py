@@ -35,11 +35,13 @@ SMALL = dict(num_envs=4, steps_per_iter=20, episode_length=100, warmup_episodes=
              dyn_pretrain_steps=5, mpc_samples=32, mpc_horizon=3, eval_episodes=2)
 
 
-def bench_one(cfg, n: int, iters: int) -> dict:
+def bench_one(cfg, n: int, iters: int, num_devices: int = 0) -> dict:
+    """One group size on the first `num_devices` local devices (0: all of them)."""
     import jax
 
     from dscpp_jax import seed_group as SG
-    mesh = SG.seed_mesh(jax.local_devices())
+    devices = jax.local_devices()
+    mesh = SG.seed_mesh(devices[:num_devices] if num_devices else devices)
     from dscpp_jax.trainer import resolve_physics
     rec = {"algo": cfg.algo, "N": n, "devices": int(mesh.size),
            "physics": resolve_physics(cfg).physics}
@@ -76,19 +78,32 @@ def bench_one(cfg, n: int, iters: int) -> dict:
 
 
 def table(records: list) -> str:
-    lines = ["| algo | N | devices | env steps/s (all seeds) | per seed | s / iteration | compile s "
-             "| speed-up vs N=1 |", "|---|---|---|---|---|---|---|---|"]
-    base = {r["algo"]: r.get("env_steps_per_s") for r in records if r["N"] == 1}
+    """Markdown table. The last column compares a row with the same algorithm at the same seeds per
+    device on one device (present when several device counts were measured)."""
+    multi = len({r["devices"] for r in records}) > 1
+    head = ("| algo | N | devices | env steps/s (all seeds) | per seed | s / iteration | compile s "
+            "| speed-up vs N=1 |" + (" vs 1 device, same seeds per device |" if multi else ""))
+    lines = [head, "|---|---|---|---|---|---|---|---|" + ("---|" if multi else "")]
+    ok = [r for r in records if "error" not in r]
+    base = {r["algo"]: r["env_steps_per_s"] for r in ok if r["N"] == 1 and r["devices"] == 1}
+    base.update({r["algo"]: r["env_steps_per_s"] for r in ok
+                 if r["N"] == 1 and r["algo"] not in base})
+    one_dev = {(r["algo"], r["N"]): r["env_steps_per_s"] for r in ok if r["devices"] == 1}
     for r in records:
         if "error" in r:
             lines.append(f"| {r['algo']} | {r['N']} | {r['devices']} | failed: {r['error']} "
-                         f"| | | | |")
+                         f"| | | | |" + (" |" if multi else ""))
             continue
         b = base.get(r["algo"])
         sp = f"{r['env_steps_per_s'] / b:.2f}x" if b else "-"
-        lines.append(f"| {r['algo']} | {r['N']} | {r['devices']} | {r['env_steps_per_s']:,.0f} | "
-                     f"{r['env_steps_per_s_per_seed']:,.0f} | {r['iteration_s']:.3f} | "
-                     f"{r['compile_s']:.1f} | {sp} |")
+        row = (f"| {r['algo']} | {r['N']} | {r['devices']} | {r['env_steps_per_s']:,.0f} | "
+               f"{r['env_steps_per_s_per_seed']:,.0f} | {r['iteration_s']:.3f} | "
+               f"{r['compile_s']:.1f} | {sp} |")
+        if multi:
+            same = one_dev.get((r["algo"], r["N"] // r["devices"]))
+            row += (f" {r['env_steps_per_s'] / same:.2f}x |"
+                    if same and r["N"] % r["devices"] == 0 else " - |")
+        lines.append(row)
     return "\n".join(lines)
 
 
@@ -97,7 +112,13 @@ def main(argv=None) -> int:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--env", default="u_maze")
     p.add_argument("--algos", default="mb_dscpp,mf_dscpp")
-    p.add_argument("--seeds-list", default="1,2,4,8,16", help="group sizes N")
+    p.add_argument("--seeds-list", default="1,2,4,8,16",
+                   help="group sizes N (seeds per device with --per-device)")
+    p.add_argument("--devices-list", default=None,
+                   help="numbers of local devices to shard each group over, e.g. 1,2: the "
+                        "one-device baseline and the multi-device rows in one run (default: all)")
+    p.add_argument("--per-device", action="store_true",
+                   help="--seeds-list counts seeds per device: N = seeds x devices")
     p.add_argument("--iters", type=int, default=5, help="iterations per N (the first is dropped)")
     p.add_argument("--preset", default="fast")
     p.add_argument("--small", action="store_true", help="tiny sizes (CPU smoke test)")
@@ -119,6 +140,12 @@ def main(argv=None) -> int:
     kw = dict(SMALL, inband_eval_envs=0) if args.small else {"inband_eval_envs": 0}
     kw.update(_overrides(args.set))
     sizes = [int(x) for x in args.seeds_list.split(",") if x.strip()]
+    n_local = len(jax.local_devices())
+    dev_counts = ([int(x) for x in args.devices_list.split(",") if x.strip()]
+                  if args.devices_list else [n_local])
+    bad = [k for k in dev_counts if not 1 <= k <= n_local]
+    if bad:
+        p.error(f"--devices-list {args.devices_list}: this host has {n_local} local device(s)")
     dev = jax.local_devices()[0]
     kind = getattr(dev, "device_kind", dev.platform).replace(" ", "_")
     out = args.out or os.path.join(ROOT, "experiments", "results", f"bench_seeds_{kind}.json")
@@ -142,11 +169,13 @@ def main(argv=None) -> int:
 
     for algo in [a.strip() for a in args.algos.split(",") if a.strip()]:
         cfg = preset(args.preset, args.env, algo, **kw).validate()
-        for n in sizes:
-            rec = bench_one(cfg, n, max(1, args.iters))
-            payload["results"].append(rec)
-            print(json.dumps(rec), flush=True)
-            text = write()
+        for k in dev_counts:
+            for s in sizes:
+                n = s * k if args.per_device else s
+                rec = bench_one(cfg, n, max(1, args.iters), k)
+                payload["results"].append(rec)
+                print(json.dumps(rec), flush=True)
+                text = write()
     print(text)
     print(f"wrote {out} and {md}")
     return 0
