@@ -202,7 +202,7 @@ def group_state(group_dir: str, sched: tuple) -> str:
     if not os.path.isdir(group_dir):
         return "new"
     steps = checkpoint_steps(group_dir)
-    if not os.path.isfile(os.path.join(group_dir, "group.json")) or not steps:
+    if not os.path.isfile(os.path.join(group_dir, "group.json")):
         return "stale"
     with open(os.path.join(group_dir, "group.json")) as f:
         n = len(json.load(f)["seeds"])
@@ -216,8 +216,8 @@ def group_state(group_dir: str, sched: tuple) -> str:
     # train writes each seed's eval.json after its last checkpoint: a call killed after logging
     # an iteration but before saving it has an older (or no) eval.json, and is not done
     if done and all(_eval_iteration(d) == int(r["iteration"]) for d, r in zip(dirs, rows)):
-        return "finished"
-    return "unfinished"
+        return "finished"     # also a lean copy (metrics, eval.json, no checkpoints)
+    return "unfinished" if steps else "stale"
 
 
 def _eval_iteration(seed_dir: str) -> Optional[int]:
@@ -303,9 +303,10 @@ def train_one(exp: Exp, args, gpus) -> str:
     gpu = gpus.get() if gpus is not None else None
     if gpu is not None:
         env["CUDA_VISIBLE_DEVICES"] = gpu
-    elif args.jobs > 1 and "XLA_PYTHON_CLIENT_MEM_FRACTION" not in env:
+    share = getattr(args, "jobs_per_gpu", 1) if gpu is not None else args.jobs
+    if share > 1 and "XLA_PYTHON_CLIENT_MEM_FRACTION" not in env:
         # several calls on one GPU: each may take its share, not JAX's default 75 %
-        env["XLA_PYTHON_CLIENT_MEM_FRACTION"] = f"{0.9 / args.jobs:.2f}"
+        env["XLA_PYTHON_CLIENT_MEM_FRACTION"] = f"{0.9 / share:.2f}"
     where = f" on GPU {gpu}" if gpu is not None else ""
     print(f"[reproduce] {name}: {'resumed' if resume else 'started'}{where} (log: {log})",
           flush=True)
@@ -328,9 +329,18 @@ def train_one(exp: Exp, args, gpus) -> str:
     return "resumed" if resume else "trained"
 
 
+def gpu_slots(gpus, jobs: int) -> list:
+    """The GPU of each of `jobs` concurrent train calls, round robin over `gpus`: several calls
+    share a GPU when there are more calls than GPUs (one group's physics is latency bound)."""
+    gpus = list(gpus)
+    if not gpus:
+        raise ValueError("--gpus names no GPU")
+    return [gpus[j % len(gpus)] for j in range(max(1, jobs))]
+
+
 def train_all(args, figs: dict) -> dict:
-    """Train (or continue, or skip) every group the figures need, --jobs at a time (each on its
-    own GPU with --gpus); {group name: status}."""
+    """Train (or continue, or skip) every group the figures need, --jobs at a time (spread over
+    the --gpus, round robin); {group name: status}."""
     import queue
     from concurrent.futures import ThreadPoolExecutor
     exps = list(dict.fromkeys(e for es in figs.values() for e in es))
@@ -339,11 +349,13 @@ def train_all(args, figs: dict) -> dict:
     for e in exps:   # groups of one directory (Figure 4's, shared with A1) train once
         names.setdefault(e.name(args.env_map), e)
     gpus = None
+    jobs = max(1, args.jobs)
     if args.gpus:
+        slots = gpu_slots(_csv_list(args.gpus, ()), jobs)
         gpus = queue.Queue()
-        for g in _csv_list(args.gpus, ()):
+        for g in slots:
             gpus.put(g)
-    jobs = max(1, args.jobs if not args.gpus else min(args.jobs, gpus.qsize()))
+        args.jobs_per_gpu = max(slots.count(g) for g in slots)
     with ThreadPoolExecutor(jobs) as pool:
         futures = {n: pool.submit(train_one, e, args, gpus) for n, e in names.items()}
         return {n: f.result() for n, f in futures.items()}
@@ -985,7 +997,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
                    help="per train call: checkpoint and stop after this long (run again to go on)")
     p.add_argument("--jobs", type=int, default=1,
-                   help="train calls at once (default 1; with --gpus at most one per GPU)")
+                   help="train calls at once (default 1); with --gpus they are spread over the "
+                        "GPUs, and calls that share a GPU split its memory")
     p.add_argument("--gpus", default=None, metavar="LIST",
                    help="e.g. 0,1,2,3: each train call gets one of these GPUs "
                         "(CUDA_VISIBLE_DEVICES); a group's seeds then share that GPU")
@@ -1008,6 +1021,8 @@ def main(argv: Optional[list] = None) -> int:
         from dscpp_jax.seed_group import parse_seeds
         parse_seeds(args.seeds)
         parse_seeds(args.a1_seeds)
+        if args.gpus is not None:
+            gpu_slots(_csv_list(args.gpus, ()), args.jobs)
     except ValueError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

@@ -6,6 +6,7 @@ import csv
 import hashlib
 import json
 import os
+import shutil
 import sys
 
 import pytest
@@ -113,6 +114,14 @@ def test_reproduce_trains_draws_reports_then_skips(tmp_path, capsys, monkeypatch
     assert ": started" not in text and ": resumed" not in text
     assert _metrics(runs) == before
 
+    # a lean copy of the runs (metrics, config, eval.json: what committed results keep, without
+    # checkpoints) is finished too, and reports as the runs do
+    lean = str(tmp_path / "lean")
+    shutil.copytree(runs, lean, ignore=shutil.ignore_patterns("checkpoints"))
+    assert reproduce.main(_args(lean, out, "--fig", "5,6,A3", "--dry-run")) == 0
+    text = capsys.readouterr().out
+    assert text.count("skipped (finished)") == 2 and "would" not in text
+
     # a longer schedule continues a group from its checkpoint; a directory without a checkpoint
     # (killed before its first) is started again
     os.makedirs(os.path.join(runs, "point_u_maze-dual-g0-1", "s0"))
@@ -137,6 +146,14 @@ def test_reproduce_trains_draws_reports_then_skips(tmp_path, capsys, monkeypatch
     text = capsys.readouterr().out
     assert "point_u_maze-mf_dscpp-g0-1: would resume" in text
     assert "point_u_maze-dsc-g0-1: skipped (finished)" in text
+
+
+def test_train_calls_spread_over_gpus():
+    assert reproduce.gpu_slots(["0", "1"], 4) == ["0", "1", "0", "1"]
+    assert reproduce.gpu_slots(["3"], 1) == ["3"]
+    assert reproduce.gpu_slots(["0", "1", "2"], 2) == ["0", "1"]
+    with pytest.raises(ValueError, match="no GPU"):
+        reproduce.gpu_slots([], 2)
 
 
 def test_bad_figure_and_a2_only(tmp_path, capsys):
