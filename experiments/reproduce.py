@@ -329,6 +329,21 @@ def train_one(exp: Exp, args, gpus) -> str:
     return "resumed" if resume else "trained"
 
 
+def visible_gpus() -> list:
+    """The GPUs this host shows a train call: CUDA_VISIBLE_DEVICES where it is set, else those
+    `nvidia-smi -L` lists (none where it is missing)."""
+    env = os.environ.get("CUDA_VISIBLE_DEVICES")
+    if env is not None:
+        ids = [g.strip() for g in env.split(",") if g.strip()]
+        return [] if not ids or ids[0] == "-1" else ids
+    try:
+        out = subprocess.run(["nvidia-smi", "-L"], capture_output=True, text=True,
+                             timeout=60).stdout
+    except (OSError, subprocess.SubprocessError):
+        return []
+    return [str(i) for i, _ in enumerate(l for l in out.splitlines() if l.startswith("GPU "))]
+
+
 def gpu_slots(gpus, jobs: int) -> list:
     """The GPU of each of `jobs` concurrent train calls, round robin over `gpus`: several calls
     share a GPU when there are more calls than GPUs (one group's physics is latency bound)."""
@@ -1026,6 +1041,14 @@ def main(argv: Optional[list] = None) -> int:
     except ValueError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    if args.gpus is None and not args.report_only:
+        # several GPUs: one train call per GPU. A group over all of them would need its seeds to
+        # be a multiple of the GPUs (5 seeds over 2 GPUs stop with that error)
+        ids = visible_gpus()
+        if len(ids) > 1:
+            args.gpus, args.jobs = ",".join(ids), max(args.jobs, len(ids))
+            print(f"[reproduce] {len(ids)} GPUs: each train call takes one of them "
+                  f"(--gpus {args.gpus} --jobs {args.jobs}; pass --gpus to choose)", flush=True)
     if args.runs_root and not os.path.isabs(args.runs_root):
         args.runs_root = os.path.join(ROOT, args.runs_root)
     if not os.path.isabs(args.out):

@@ -148,7 +148,19 @@ def test_reproduce_trains_draws_reports_then_skips(tmp_path, capsys, monkeypatch
     assert "point_u_maze-dsc-g0-1: skipped (finished)" in text
 
 
-def test_train_calls_spread_over_gpus():
+def test_train_calls_spread_over_gpus(tmp_path, capsys, monkeypatch):
+    # several visible GPUs and no --gpus: one GPU per train call (a 5-seed group cannot be split
+    # over two)
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "2,3")
+    assert reproduce.visible_gpus() == ["2", "3"]
+    runs, out = str(tmp_path / "runs"), str(tmp_path / "out")
+    assert reproduce.main(["--fig", "5", "--runs-root", runs, "--out", out, "--dry-run"]) == 0
+    assert "2 GPUs: each train call takes one of them (--gpus 2,3 --jobs 2" in \
+        capsys.readouterr().out
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "-1")
+    assert reproduce.visible_gpus() == []
+    assert reproduce.main(["--fig", "5", "--gpus", ",", "--dry-run"]) == 2
+    assert "names no GPU" in capsys.readouterr().err
     assert reproduce.gpu_slots(["0", "1"], 4) == ["0", "1", "0", "1"]
     assert reproduce.gpu_slots(["3"], 1) == ["3"]
     assert reproduce.gpu_slots(["0", "1", "2"], 2) == ["0", "1"]
