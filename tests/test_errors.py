@@ -5,6 +5,7 @@ checkpoints, the Python API and env constructors called with bad arguments. Each
 import errno
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -401,7 +402,10 @@ def test_wandb_offline_logs_the_same_metrics_and_resumes_the_same_run(trained, t
     assert json.load(open(os.path.join(run, "wandb_run.json")))["id"] == run_id
     wb = tmp_path / "wb" / "wandb"
     offline = sorted(d for d in os.listdir(wb) if d.startswith("offline-run-"))
-    assert len(offline) == 2 and all(d.endswith(run_id) for d in offline)   # one wandb run
+    # one wandb run resumed: both directories carry its id (wandb adds "-1" to the second when
+    # both calls start within the same second)
+    assert len(offline) == 2 and all(
+        re.fullmatch(rf"offline-run-\d{{8}}_\d{{6}}-{re.escape(run_id)}(-\d+)?", d) for d in offline)
     data = b"".join(open(os.path.join(wb, d, f), "rb").read() for d in offline
                     for f in os.listdir(wb / d) if f.endswith(".wandb"))
     columns = [c for c in read_metrics(run) if c != "iteration"]
