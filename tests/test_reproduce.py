@@ -88,6 +88,8 @@ def test_reproduce_trains_draws_reports_then_skips(tmp_path, capsys, monkeypatch
     assert {r["env"] for r in a2} == {"point_u_maze"} and {r["n_seeds"] for r in a2} == {"2"}
 
     readme = open(os.path.join(out, "README.md")).read()
+    assert readme.startswith("# The paper's figures, reproduced on other environments "
+                             "(u_maze -> point_u_maze, ant_reacher -> point_ant_reacher)")
     table = [l for l in readme.splitlines() if l.startswith("| ") and not l.startswith("| figure")]
     figs = [l.split("|")[1].strip() for l in table]
     assert set(figs) == {"4", "5", "6", "A1", "A2", "A3"}
