@@ -923,7 +923,12 @@ def _shown_path(path: str) -> str:
     return path if rel.startswith("..") else rel
 
 
+NOTES_HEADING = "\n## Notes\n"
+
+
 def write_readme(data: Data, args, figures: dict, status: dict) -> str:
+    """The claims table and figure list as README.md in --out; a hand-written section that starts
+    with the heading "## Notes" below them survives a re-run."""
     path = os.path.join(args.out, "README.md")
     cmd = "python experiments/reproduce.py " + " ".join(args.argv)
     anything = any(data.dirs(e) for e in data.info)
@@ -974,8 +979,17 @@ def write_readme(data: Data, args, figures: dict, status: dict) -> str:
     if status:
         lines += ["", "Runs (this call):", ""]
         lines += [f"- `{k}`: {v}" for k, v in status.items()]
+    text = "\n".join(lines) + "\n"
+    try:   # a "## Notes" section written by hand below the generated part is kept
+        with open(path) as f:
+            old = f.read()
+        i = old.find(NOTES_HEADING)
+        if i >= 0:
+            text += "\n" + old[i:]
+    except OSError:
+        pass
     with open(path, "w") as f:
-        f.write("\n".join(lines) + "\n")
+        f.write(text)
     return path
 
 

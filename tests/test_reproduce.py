@@ -188,6 +188,14 @@ def test_bad_figure_and_a2_only(tmp_path, capsys):
                            "--report-only"]) == 0
     readme = open(os.path.join(out, "README.md")).read()
     assert readme.count("| not run") == readme.count("\n| ") - 1   # every claim: not run
+    # a hand-written "## Notes" section survives the next call
+    with open(os.path.join(out, "README.md"), "a") as f:
+        f.write("\n## Notes\n\nWhat these runs mean.\n")
+    assert reproduce.main(["--fig", "A2", "--runs-root", runs, "--out", out,
+                           "--report-only"]) == 0
+    readme = open(os.path.join(out, "README.md")).read()
+    assert readme.count("## Notes") == 1 and readme.endswith("\n## Notes\n\nWhat these runs mean.\n")
+    assert readme.startswith("# The paper's figures, reproduced\n")
 
 
 def test_success_curves_come_from_in_band_evaluation_where_runs_have_it(tmp_path):
