@@ -269,8 +269,9 @@ def train_command(exp: Exp, group_dir: str, args, resume: bool) -> list:
     return cmd
 
 
-def train_one(exp: Exp, args, gpus) -> str:
-    """Train, continue or skip one group; returns its status word."""
+def train_one(exp: Exp, args, gpus, per_gpu: int = 1) -> str:
+    """Train, continue or skip one group; returns its status word. `gpus`: a queue of GPU ids
+    (or None) of which the call takes one; `per_gpu`: how many calls share each of them."""
     name = exp.name(args.env_map)
     gdir = os.path.join(args.runs_root, name)
     sched = schedule(exp, args)
@@ -303,7 +304,7 @@ def train_one(exp: Exp, args, gpus) -> str:
     gpu = gpus.get() if gpus is not None else None
     if gpu is not None:
         env["CUDA_VISIBLE_DEVICES"] = gpu
-    share = getattr(args, "jobs_per_gpu", 1) if gpu is not None else args.jobs
+    share = per_gpu if gpu is not None else args.jobs
     if share > 1 and "XLA_PYTHON_CLIENT_MEM_FRACTION" not in env:
         # several calls on one GPU: each may take its share, not JAX's default 75 %
         env["XLA_PYTHON_CLIENT_MEM_FRACTION"] = f"{0.9 / share:.2f}"
@@ -363,16 +364,16 @@ def train_all(args, figs: dict) -> dict:
     names = {}
     for e in exps:   # groups of one directory (Figure 4's, shared with A1) train once
         names.setdefault(e.name(args.env_map), e)
-    gpus = None
+    gpus, per_gpu = None, 1
     jobs = max(1, args.jobs)
     if args.gpus:
         slots = gpu_slots(_csv_list(args.gpus, ()), jobs)
         gpus = queue.Queue()
         for g in slots:
             gpus.put(g)
-        args.jobs_per_gpu = max(slots.count(g) for g in slots)
+        per_gpu = max(slots.count(g) for g in slots)
     with ThreadPoolExecutor(jobs) as pool:
-        futures = {n: pool.submit(train_one, e, args, gpus) for n, e in names.items()}
+        futures = {n: pool.submit(train_one, e, args, gpus, per_gpu) for n, e in names.items()}
         return {n: f.result() for n, f in futures.items()}
 
 
