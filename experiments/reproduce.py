@@ -408,6 +408,24 @@ def finals(cs: list) -> np.ndarray:
     return np.array([c[1][-1] for c in cs])
 
 
+def final_evals(dirs, column: str) -> Optional[np.ndarray]:
+    """Each run's final evaluation (`eval.json`, written at the end of its schedule: 100 episodes
+    with the ant preset, whose metrics.csv has no evaluation column when it evaluates only in-band)
+    where every run has one from its last logged iteration; else None."""
+    out = []
+    for d in dirs:
+        row = _last_row(d)
+        try:
+            with open(os.path.join(d, "eval.json")) as f:
+                ev = json.load(f)
+        except (OSError, ValueError):
+            return None
+        if row is None or column not in ev or int(ev.get("iteration", -1)) != int(row["iteration"]):
+            return None
+        out.append(float(ev[column]))
+    return np.array(out) if out else None
+
+
 def _plt():
     import matplotlib
     matplotlib.use("Agg")
@@ -755,6 +773,10 @@ def claims(data: Data, args, figures: dict) -> list:
     fig6_exps = [e for e in data.figs.get("6", []) if e.tag != "long"]
 
     def final(exp, col="eval/success_rate", reduce="last"):
+        if reduce == "last" and col.startswith("eval/"):
+            v = final_evals(data.dirs(exp), col)
+            if v is not None:
+                return v
         cs = curves(data.dirs(exp), col, inband=reduce != "last")
         if not cs:
             return None

@@ -236,6 +236,25 @@ def test_bench_seeds_smoke(ref, tmp_path):
         bench_seeds.main(["--devices-list", "1,3", "--out", out])
 
 
+def test_profile_seed_group_smoke(ref, tmp_path):
+    """experiments/profile_seed_group.py on the tiny config: every asked part and variant timed."""
+    sys.path.insert(0, os.path.join(ROOT, "experiments"))
+    try:
+        import profile_seed_group
+    finally:
+        sys.path.pop(0)
+    out = str(tmp_path / "profile.json")
+    sets = [a for s in TINY for a in ("--set", s)]
+    assert profile_seed_group.main(["--env", "point_u_maze", "--algo", "td3_her", "--seeds-list",
+                                    "2", "--parts", "td3,step", "--td3-variants", "fixed_batch",
+                                    "--reps", "1", "--out", out] + sets) == 0
+    row = json.load(open(out))["rows"][0]
+    assert row["N"] == 2 and row["td3_s"] > 0 and row["td3_fixed_batch_s"] > 0
+    assert row["step_s"] > 0 and row["env_steps_per_s"] > 0 and "physics_s" not in row
+    with pytest.raises(SystemExit):
+        profile_seed_group.main(["--td3-variants", "unknown"] + sets)
+
+
 FOUR_DEVICES = """
 import json, sys
 import jax, numpy as np

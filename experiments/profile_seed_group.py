@@ -1,0 +1,232 @@
+"""Where the iteration of a seed group spends its time, per component, at several group sizes.
+
+    python experiments/profile_seed_group.py --env u_maze --algo mf_dscpp --seeds-list 1,16
+    python experiments/profile_seed_group.py --env point_u_maze --algo mb_dscpp --seeds-list 1,2 --small  # CPU smoke
+
+For each group size N it builds the group on one device (`dscpp_jax.init_group`), moves it past the
+warm-up (the policy acts, as in most of a run) and times, as `bench_seeds.py` does the whole step
+(median of repeated jitted calls after a first call that compiles, results blocked on), each part
+of the iteration vmapped over the seeds with the seed axis named, exactly as the group step runs it:
+
+  physics     T steps of the N x B environments with random actions (MuJoCo Warp flattens the
+              seeds' worlds into one batch)
+  mpc         one MPC decision of every seed (model-based algorithms; T of them per iteration)
+  rollout     the whole T-step collection scan (options, policy or MPC, in-band evaluation, replay)
+  learn       TD3 + dynamics updates, classifier refits, chain growth (only with --parts: compiled
+              on its own it took XLA over two minutes on an H100, against ~25 s for the whole step;
+              the step minus the rollout tells its time)
+  td3         the TD3+HER gradient steps alone (part of learn)
+  dynamics    the dynamics model's gradient steps alone (part of learn, model-based)
+  step        the whole group step (`train_step_group`'s program)
+
+`--td3-variants` times the TD3 steps again with one thing changed, to tell what bounds them
+(measurements, not options of the library):
+  fixed_batch   every step reuses one pre-drawn minibatch: no replay sampling or HER relabelling
+  bf16          matmuls traced under jax.default_matmul_precision("bfloat16")
+  highest       matmuls at full float32 precision ("highest")
+  half_batch    half the minibatch size
+
+Writes JSON (device, versions, command, every number) with --out.
+"""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import os
+import platform
+import statistics
+import sys
+import time
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+if ROOT not in sys.path:
+    sys.path.insert(0, ROOT)
+
+VARIANTS = ("fixed_batch", "bf16", "highest", "half_batch")
+PARTS = ("physics", "mpc", "rollout", "learn", "td3", "dynamics", "step")
+DEFAULT_PARTS = ("physics", "mpc", "rollout", "td3", "dynamics", "step")
+
+
+def _time(fn, *args, reps=3):
+    import jax
+    t0 = time.perf_counter()
+    jax.block_until_ready(fn(*args))  # compile + first call
+    first = time.perf_counter() - t0
+    ts = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        ts.append(time.perf_counter() - t0)
+    return statistics.median(ts), first
+
+
+def profile(cfg, n: int, reps: int, variants=(), parts=DEFAULT_PARTS) -> dict:
+    import dataclasses
+
+    import jax
+    import jax.numpy as jnp
+
+    from dscpp_jax import seed_group as SG
+    from dscpp_jax import trainer as T
+    from dscpp_jax.td3 import td3_updates
+
+    A = T.SEED_AXIS
+    mesh = SG.seed_mesh(jax.local_devices()[:1])
+    states = SG.init_group(range(n), cfg, mesh)
+    c = states.counters
+    states = states.replace(counters=c.replace(episodes=c.episodes + 10 ** 6,
+                                               warmup_done=c.warmup_done | True))
+    gcfg = states.config
+    treedef, specs = SG._spec_key(states, n)
+    axes = SG._vmap_axes(treedef, specs)
+    keys = jax.random.split(jax.random.PRNGKey(1), n)
+    B, Tn = gcfg.num_envs, gcfg.steps_per_iter
+    out = {"N": n, "num_envs": B, "steps_per_iter": Tn, "td3_updates": gcfg.td3_updates,
+           "td3_batch_size": gcfg.td3_batch_size, "td3_sample_block": gcfg.td3_sample_block,
+           "first_call_s": {}}
+    want = (lambda name: name in parts)
+
+    def record(name, fn, *args):
+        t, first = _time(fn, *args, reps=reps)
+        out[name + "_s"] = t
+        out["first_call_s"][name] = first
+        print(f"  N={n:>3} {name:<22} {t:8.4f} s", flush=True)
+
+    def over_seeds(f, in_axes, out_axes):
+        return jax.jit(jax.vmap(f, in_axes=in_axes, out_axes=out_axes, axis_name=A))
+
+    env = T.make_env(gcfg)
+    if want("physics"):
+        def physics(es, k):
+            def body(es, kk):
+                a = jax.random.uniform(kk, (B, env.action_size), jnp.float32, -1.0, 1.0)
+                return jax.vmap(env.step)(es, a), None
+            return jax.lax.scan(body, es, jax.random.split(k, Tn))[0]
+        record("physics", over_seeds(physics, (axes.env_state, 0), axes.env_state),
+               states.env_state, keys)
+    if gcfg.model_based and want("mpc"):
+        def mpc(td3, dyn, k, obs):
+            goals = jnp.broadcast_to(jnp.asarray(env.goal, jnp.float32), (B, 2))
+            vf = T._value_fn(gcfg, td3) if gcfg.uses_value_in_mpc else None
+            vn = T._value_net(gcfg, td3) if gcfg.uses_value_in_mpc else None
+            return T._mpc_actions(gcfg, dyn, k, obs, goals, vf, vn)
+        record("mpc_decision", over_seeds(mpc, 0, 0), states.td3, states.dyn, keys,
+               states.env_state.obs)
+        out["mpc_s"] = out["mpc_decision_s"] * Tn
+    if want("rollout"):
+        record("rollout", over_seeds(lambda s, k: T._rollout(s, k, A), (axes, 0), (axes, 0)),
+               states, keys)
+    if want("learn"):
+        record("learn", over_seeds(lambda s, k: T._learn(s, k, A), (axes, 0), (axes, 0)),
+               states, keys)
+    tcfg, sample = T.td3_config(gcfg), T.td3_sample_fn(gcfg, env)
+
+    def td3_fn(tc=tcfg, sample_fn=sample):
+        return over_seeds(lambda td3, rep, k: td3_updates(
+            tc, td3, rep, k, gcfg.td3_updates, sample_fn, sample_block=gcfg.td3_sample_block,
+            seed_axis=A), 0, 0)
+
+    if want("td3"):
+        record("td3", td3_fn(), states.td3, states.replay, keys)
+        for v in variants:
+            ctx = contextlib.nullcontext()
+            fn = None
+            if v == "fixed_batch":
+                fixed = jax.vmap(lambda rep, k: sample(k, rep, tcfg.batch_size))(states.replay, keys)
+
+                def f(td3, fb, k):
+                    return td3_updates(tcfg, td3, fb, k, gcfg.td3_updates,
+                                       lambda kk, b, m: b if m == tcfg.batch_size else
+                                       jax.tree_util.tree_map(
+                                           lambda x: jnp.concatenate([x] * (m // tcfg.batch_size)),
+                                           b),
+                                       sample_block=gcfg.td3_sample_block, seed_axis=A)
+                fn = over_seeds(f, 0, 0)
+                args = (states.td3, fixed, keys)
+            elif v == "bf16":
+                ctx = jax.default_matmul_precision("bfloat16")
+            elif v == "highest":
+                ctx = jax.default_matmul_precision("highest")
+            elif v == "half_batch":
+                fn = td3_fn(dataclasses.replace(tcfg, batch_size=max(1, tcfg.batch_size // 2)))
+            else:
+                raise ValueError(f"unknown --td3-variants entry {v!r}; choose from {VARIANTS}")
+            if fn is None:
+                fn = td3_fn()
+            if v != "fixed_batch":
+                args = (states.td3, states.replay, keys)
+            with ctx:
+                record("td3_" + v, fn, *args)
+    if gcfg.model_based and want("dynamics"):
+        record("dynamics", over_seeds(lambda d, mr, k: T._dynamics_updates(
+            gcfg, d, mr, k, gcfg.dyn_updates), 0, 0), states.dyn, states.model_replay, keys)
+    if want("step"):
+        fn, st, active = SG.group_step_program(states, mesh)
+        record("step", fn, st, active)
+        out["env_steps_per_s"] = n * gcfg.steps_per_iteration_total / out["step_s"]
+    return out
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--env", default="u_maze")
+    p.add_argument("--algo", default="mf_dscpp")
+    p.add_argument("--preset", default="fast")
+    p.add_argument("--seeds-list", default="1,16", help="group sizes, comma separated")
+    p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE")
+    p.add_argument("--reps", type=int, default=3)
+    p.add_argument("--td3-variants", default="", help=f"comma separated, from {VARIANTS}")
+    p.add_argument("--parts", default=",".join(DEFAULT_PARTS),
+                   help=f"comma separated, from {','.join(PARTS)} (default: all but learn)")
+    p.add_argument("--small", action="store_true", help="tiny sizes (CPU smoke test)")
+    p.add_argument("--out", default=None)
+    a = p.parse_args(argv)
+
+    import jax
+
+    from dscpp_jax.config import parse_value, preset
+    sys.path.insert(0, os.path.join(ROOT, "experiments"))
+    from bench_seeds import SMALL
+
+    overrides = dict(SMALL) if a.small else {}
+    for s in a.set:
+        k, v = s.split("=", 1)
+        overrides[k] = parse_value(k, v)
+    cfg = preset(a.preset, a.env, a.algo, **overrides).validate()
+    variants = [v for v in a.td3_variants.split(",") if v]
+    for v in variants:
+        if v not in VARIANTS:
+            p.error(f"unknown --td3-variants entry {v!r}; choose from {', '.join(VARIANTS)}")
+    parts = tuple(x for x in a.parts.split(",") if x)
+    for x in parts:
+        if x not in PARTS:
+            p.error(f"unknown --parts entry {x!r}; choose from {', '.join(PARTS)}")
+    dev = jax.devices()[0]
+    print(f"{a.env} {a.algo} on {dev.device_kind} ({jax.default_backend()})", flush=True)
+    rows = []
+    for n in [int(x) for x in a.seeds_list.split(",")]:
+        rows.append(profile(cfg, n, a.reps, variants, parts))
+    import importlib.metadata as md
+
+    def ver(name):
+        try:
+            return md.version(name)
+        except md.PackageNotFoundError:
+            return None
+    rec = {"command": " ".join(["python", "experiments/profile_seed_group.py"] + list(argv or sys.argv[1:])),
+           "device": dev.device_kind, "backend": jax.default_backend(),
+           "versions": {k: ver(k) for k in ("jax", "jaxlib", "mujoco", "mujoco-mjx", "warp-lang")},
+           "python": platform.python_version(), "env": a.env, "algo": a.algo,
+           "overrides": {k: str(v) for k, v in overrides.items()}, "rows": rows}
+    if a.out:
+        os.makedirs(os.path.dirname(os.path.abspath(a.out)), exist_ok=True)
+        with open(a.out, "w") as f:
+            json.dump(rec, f, indent=1)
+        print("wrote", a.out)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
