@@ -222,3 +222,27 @@ def test_success_curves_come_from_in_band_evaluation_where_runs_have_it(tmp_path
     assert x.tolist() == [30.0] and y.tolist() == [0.9]
     (x, y), = reproduce.curves([per], "eval/success_rate")
     assert x.tolist() == [10.0, 30.0] and y.tolist() == [0.25, 0.5]
+
+
+def test_final_success_comes_from_eval_json_of_the_last_iteration(tmp_path):
+    """A run that evaluates only in-band has no evaluation column in metrics.csv; its final
+    success is eval.json's (the 100 episodes at the end), but only if eval.json is from the
+    run's last logged iteration."""
+    from dscpp_jax.run_logging import RunLogger
+    dirs = []
+    for i, (it, rate) in enumerate(((3, 0.83), (3, 0.0))):
+        d = str(tmp_path / f"s{i}")
+        log = RunLogger(d)
+        for j in (1, 2, 3):
+            log.log({"iteration": j, "env_steps": 100 * j, "episodes": 10 * j,
+                     "inband/success_rate": 0.5, "inband/window": 4})
+        log.close()
+        with open(os.path.join(d, "eval.json"), "w") as f:
+            json.dump({"eval/success_rate": rate, "iteration": it}, f)
+        dirs.append(d)
+    assert reproduce.final_evals(dirs, "eval/success_rate").tolist() == [0.83, 0.0]
+    assert reproduce.final_evals(dirs, "eval/steps_to_goal") is None
+    with open(os.path.join(dirs[1], "eval.json"), "w") as f:     # from an older iteration
+        json.dump({"eval/success_rate": 1.0, "iteration": 2}, f)
+    assert reproduce.final_evals(dirs, "eval/success_rate") is None
+    assert reproduce.final_evals([], "eval/success_rate") is None
