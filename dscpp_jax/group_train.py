@@ -296,7 +296,7 @@ def train_group(cfg: Config, seeds: Sequence[int], group_dir: Optional[str] = No
                            f"{np.nanmin(last_eval):.2f}" if np.isfinite(last_eval).any()
                            else "eval_success -")
                 print(f"[{time.time() - t_start:7.0f}s] it {group_it} env_steps/seed "
-                      f"{int(env_steps.max())} episodes {int(episodes.sum())} {ev_text}{ib_text} "
+                      f"{int(env_steps.max())} episodes/seed {_range(episodes)} {ev_text}{ib_text} "
                       f"options {_range(options)} steps/s (all seeds) {rate:.0f}", flush=True)
             if cfg.checkpoint_every and group_it % cfg.checkpoint_every == 0:
                 ckpt.save(group_it, states)

@@ -270,7 +270,9 @@ def test_cli_logs_inband_metrics(tmp_path, capsys):
     for s in (0, 1):
         g = read_metrics(f"{group}/s{s}")
         assert g["inband/episodes"] == [0.0, 0.0, 2.0]
-    assert "inband_success mean" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "inband_success mean" in out
+    assert "episodes/seed " in out          # per seed (min-max), as env_steps/seed beside it
     # the curves draw in-band success only from iterations where an in-band episode had finished
     from dscpp_jax import plots
     x, y = plots._curve(run, "inband/success_rate", "iteration")
