@@ -215,14 +215,20 @@ def test_readme_seed_group_example_runs(ref, capsys):
     assert len(rates) == 2 and all(0.0 <= r <= 1.0 for r in rates)
 
 
+def _experiment(name: str):
+    """A script of experiments/ imported as a module."""
+    import importlib
+    sys.path.insert(0, os.path.join(ROOT, "experiments"))
+    try:
+        return importlib.import_module(name)
+    finally:
+        sys.path.pop(0)
+
+
 def test_bench_seeds_smoke(ref, tmp_path):
     """experiments/bench_seeds.py on the tiny config (its program is in the compilation cache); a
     group size that fails is recorded, not fatal."""
-    sys.path.insert(0, os.path.join(ROOT, "experiments"))
-    try:
-        import bench_seeds
-    finally:
-        sys.path.pop(0)
+    bench_seeds = _experiment("bench_seeds")
     out = str(tmp_path / "bench.json")
     sets = [a for s in TINY for a in ("--set", s)]
     assert bench_seeds.main(["--env", "point_u_maze", "--algos", "td3_her", "--seeds-list", "2,0",
@@ -238,11 +244,7 @@ def test_bench_seeds_smoke(ref, tmp_path):
 
 def test_profile_seed_group_smoke(ref, tmp_path):
     """experiments/profile_seed_group.py on the tiny config: every asked part and variant timed."""
-    sys.path.insert(0, os.path.join(ROOT, "experiments"))
-    try:
-        import profile_seed_group
-    finally:
-        sys.path.pop(0)
+    profile_seed_group = _experiment("profile_seed_group")
     out = str(tmp_path / "profile.json")
     sets = [a for s in TINY for a in ("--set", s)]
     assert profile_seed_group.main(["--env", "point_u_maze", "--algo", "td3_her", "--seeds-list",
