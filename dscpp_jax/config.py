@@ -65,8 +65,6 @@ class Config:
     goal_tolerance: float = 0.6
     gestation: int = 10
     buffer_len: int = 50
-    buffer_stride: int = 1             # positives: the last buffer_len positions, one every
-                                       # buffer_stride steps (1: the paper's last 50 steps)
     option_timeout: int = 200
     max_options: int = 12              # fixed capacity of the option table (global + goal + links)
     max_pos_traj: int = 100
@@ -312,12 +310,6 @@ class Config:
              f"inband_eval_envs finished in-band episodes)")
         need(self.buffer_len < self.option_timeout + 1,
              "buffer_len must be <= option_timeout")
-        need(int(self.buffer_stride) >= 1,
-             f"buffer_stride={self.buffer_stride} must be >= 1 (1: the last buffer_len steps)")
-        need(self.buffer_len * self.buffer_stride <= self.option_timeout,
-             f"buffer_len * buffer_stride = {self.buffer_len * self.buffer_stride} steps must be "
-             f"<= option_timeout={self.option_timeout}: a positive trajectory spans at most one "
-             f"execution")
         need(isinstance(self.shared_critic, bool),
              f"shared_critic={self.shared_critic!r} must be True or False")
         need(self.shared_critic or not self.model_based,

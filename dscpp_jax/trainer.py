@@ -61,7 +61,7 @@ class ExecState:
     opt_steps: jax.Array   # int32 steps since the option started
     start_xy: jax.Array    # (2,) where the option started
     start_obs: jax.Array   # (obs_dim,) observation where the option started (DP inputs)
-    traj: jax.Array        # (buffer_len * buffer_stride, 2) last positions, oldest first
+    traj: jax.Array        # (buffer_len, 2) last positions, oldest first
     traj_count: jax.Array  # int32 number of valid rows at the end of `traj`
     seg_id: jax.Array      # int32, increments at every option start (HER segments)
 
@@ -251,7 +251,7 @@ def exec_init(config: Config, obs, goal) -> ExecState:
         opt_steps=jnp.zeros((B,), jnp.int32),
         start_xy=obs[:, :2],
         start_obs=obs,
-        traj=jnp.zeros((B, config.buffer_len * config.buffer_stride, 2), jnp.float32),
+        traj=jnp.zeros((B, config.buffer_len, 2), jnp.float32),
         traj_count=jnp.zeros((B,), jnp.int32),
         seg_id=jnp.zeros((B,), jnp.int32),
     )
@@ -886,10 +886,7 @@ def _record_outcomes(config: Config, chain, ex: ExecState, success, events):
     from dscpp_jax.options import record_outcomes
     T_ = ex.traj.shape[1]
     tmask = jnp.arange(T_)[None, :] >= (T_ - ex.traj_count)[:, None]
-    # every buffer_stride-th position, ending at the newest: buffer_len positions
-    s = config.buffer_stride
-    traj, tmask = ex.traj[:, s - 1::s], tmask[:, s - 1::s]
-    return record_outcomes(chain, jnp.clip(ex.option, 0), success, ex.start_xy, traj, tmask,
+    return record_outcomes(chain, jnp.clip(ex.option, 0), success, ex.start_xy, ex.traj, tmask,
                            events, start_obs=ex.start_obs)
 
 

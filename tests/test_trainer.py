@@ -415,28 +415,3 @@ def test_mb_dscpp_learns_point_four_rooms(background, request):
     summary, env_steps, num_options = _result(background, request)
     assert summary["eval/success_rate"] >= 0.8, (summary, env_steps)
     assert num_options >= 4          # the chain spans at least two rooms
-
-
-@pytest.mark.parametrize("steps", [20, 5])
-def test_buffer_stride_keeps_every_stride_th_position_ending_at_the_newest(steps):
-    """Positives of a successful execution: the start plus the last buffer_len positions taken one
-    every buffer_stride steps, newest last; an execution shorter than the span keeps the ones
-    it visited (NumPy oracle of the ring)."""
-    cfg = tiny("mf_dscpp", buffer_len=4, buffer_stride=3)
-    s = T.init(jax.random.PRNGKey(0), cfg)
-    B = cfg.num_envs
-    ex = s.exec.replace(option=jnp.full((B,), 1, jnp.int32), traj_count=jnp.zeros((B,), jnp.int32),
-                        start_xy=jnp.zeros((B, 2)), opt_steps=jnp.zeros((B,), jnp.int32))
-    assert ex.traj.shape == (B, 12, 2)
-    for t in range(steps):
-        ex = T._push_traj(ex, jnp.tile(jnp.array([[float(t), 0.5]]), (B, 1)))
-    events = jnp.arange(B) == 0
-    chain = T._record_outcomes(cfg, s.chain, ex, jnp.ones((B,), bool), events)
-    xs = np.asarray(chain.pos_xy[1, 0, 1:, 0])
-    mask = np.asarray(chain.pos_mask[1, 0, 1:])
-    want = [t for t in range(steps - 1, -1, -3)][:4][::-1]      # newest, newest - 3, ...
-    assert list(xs[mask]) == want
-    assert bool(chain.pos_mask[1, 0, 0]) and int(chain.pos_count[1]) == 1
-    with pytest.raises(ValueError, match="buffer_stride"):
-        tiny("mf_dscpp", buffer_len=10, buffer_stride=5).validate()   # 50 steps > timeout 40
-
