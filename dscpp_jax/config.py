@@ -64,6 +64,8 @@ class Config:
     warmup_episodes: int = 50          # uniform-random episodes from the task start
     goal_tolerance: float = 0.6
     gestation: int = 10
+    gestation_patience: int = 0        # 0: off (the paper). N: an option in gestation with
+                                       # N * (successes + 1) executions targets its grandparent
     buffer_len: int = 50
     option_timeout: int = 200
     max_options: int = 12              # fixed capacity of the option table (global + goal + links)
@@ -71,6 +73,8 @@ class Config:
     max_neg: int = 100
     svm_gamma: float = 0.5
     diverse_starts: bool = True        # training episodes after warm-up start anywhere free
+    task_start_prob: float = 0.0       # with diverse starts: the share of training episodes after
+                                       # warm-up that start at the task start instead
     eval_prefer_pessimistic: bool = True  # evaluation's policy over options tries pessimistic
                                        # regions first (False: the paper's walk, as in training)
 
@@ -310,6 +314,12 @@ class Config:
              f"inband_eval_envs finished in-band episodes)")
         need(self.buffer_len < self.option_timeout + 1,
              "buffer_len must be <= option_timeout")
+        need(int(self.gestation_patience) >= 0,
+             f"gestation_patience={self.gestation_patience} must be >= 0 (0: off; e.g. 100 "
+             f"re-targets an option in gestation with no success in 100 executions)")
+        need(0.0 <= float(self.task_start_prob) <= 1.0,
+             f"task_start_prob={self.task_start_prob} must be in [0, 1] (the share of training "
+             f"episodes that start at the task start; 0: all diverse starts)")
         need(isinstance(self.shared_critic, bool),
              f"shared_critic={self.shared_critic!r} must be True or False")
         need(self.shared_critic or not self.model_based,

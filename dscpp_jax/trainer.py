@@ -512,6 +512,10 @@ def _rollout(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[s
                 fresh_div = jax.vmap(env.reset_at)(ks, starts)
                 fresh_task = jax.vmap(env.reset)(ks)
                 fresh = select_state(warm_next, fresh_task, fresh_div)
+                if config.task_start_prob > 0:
+                    at_task = (jax.random.uniform(jax.random.fold_in(k_start, 1), (B,))
+                               < config.task_start_prob)
+                    fresh = select_states(at_task, fresh_task, fresh)
             else:
                 fresh = jax.vmap(env.reset)(ks)
             return select_states(done, fresh, nes)
@@ -827,7 +831,8 @@ def chain_config(config: Config):
                        max_pos_traj=config.max_pos_traj, max_neg=config.max_neg,
                        variant=config.classifier_variant, goal_tolerance=config.goal_tolerance,
                        subgoal_tolerance=config.goal_tolerance, obs_dim=_obs_dim(config),
-                       svm_gamma=config.svm_gamma, svm_backend=config.svm_backend)
+                       svm_gamma=config.svm_gamma, svm_backend=config.svm_backend,
+                       gestation_patience=config.gestation_patience)
 
 
 def _chain_init(config: Config, goal):

@@ -111,6 +111,23 @@ def test_episodes_begun_after_the_warm_up_start_anywhere():
     assert np.all(np.linalg.norm(xy - task_start, axis=-1) > 1.0), (xy, task_start)
 
 
+@pytest.mark.parametrize("prob", [1.0, 0.5])
+def test_task_start_prob_starts_that_share_of_episodes_at_the_task_start(prob):
+    # as above, with task_start_prob: after the warm-up, every episode (prob 1) or about half of
+    # them (prob 0.5, 16 envs) begins at the task start (within the reset noise)
+    cfg = tiny("mb_dscpp", subgoal="dp", task_start_prob=prob, num_envs=16)
+    s = T.init(jax.random.PRNGKey(0), cfg)
+    task_start = np.asarray(s.env_state.obs[:, :2])
+    for _ in range(5):
+        s, m = T.train_step(s)
+    assert int(s.counters.episodes) == cfg.num_envs
+    near = np.linalg.norm(np.asarray(s.env_state.obs[:, :2]) - task_start, axis=-1) < 0.5
+    if prob == 1.0:
+        assert near.all()
+    else:
+        assert 3 <= near.sum() <= 13, near
+
+
 def test_vmap_over_seeds_equals_separate_runs():
     cfg = tiny("mf_dscpp")
     keys = jax.random.split(jax.random.PRNGKey(7), 2)
@@ -415,3 +432,8 @@ def test_mb_dscpp_learns_point_four_rooms(background, request):
     summary, env_steps, num_options = _result(background, request)
     assert summary["eval/success_rate"] >= 0.8, (summary, env_steps)
     assert num_options >= 4          # the chain spans at least two rooms
+
+
+def test_task_start_prob_outside_0_1_is_refused():
+    with pytest.raises(ValueError, match="task_start_prob"):
+        tiny("mf_dscpp", task_start_prob=1.5).validate()
