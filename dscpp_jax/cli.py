@@ -520,7 +520,8 @@ def cmd_plot(args) -> int:
     from dscpp_jax import plots
     out = args.out or (os.path.join(args.runs[0], "plots") if len(args.runs) == 1 else "plots")
     try:
-        paths = plots.plot_runs(args.runs, out, with_state=not args.curves_only)
+        paths = plots.plot_runs(args.runs, out, with_state=not args.curves_only,
+                                trajectory=not args.regions_only)
     except OSError as e:
         if isinstance(e, ValueError):
             raise
@@ -790,6 +791,9 @@ def build_parser() -> argparse.ArgumentParser:
     pl.add_argument("runs", nargs="+")
     pl.add_argument("--out", default=None)
     pl.add_argument("--curves-only", action="store_true")
+    pl.add_argument("--regions-only", action="store_true",
+                    help="curves and the options' regions, but no evaluation episodes for the "
+                         "trajectory plot (seconds instead of minutes on the ant)")
     pl.set_defaults(func=cmd_plot)
     return p
 

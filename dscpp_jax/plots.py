@@ -288,8 +288,10 @@ def plot_curves(run_dirs: Sequence[str], path: str, group: bool = True) -> str:
     return path
 
 
-def plot_runs(run_dirs: Sequence[str], out_dir: str, with_state: bool = True) -> list[str]:
-    """All plots for the given runs: curves; for a single run also trajectory + classifiers."""
+def plot_runs(run_dirs: Sequence[str], out_dir: str, with_state: bool = True,
+              trajectory: bool = True) -> list[str]:
+    """All plots for the given runs: curves; with ``with_state`` also each run's classifiers
+    and (``trajectory``: after evaluation episodes from its checkpoint) trajectories."""
     os.makedirs(out_dir, exist_ok=True)
     paths = [plot_curves(run_dirs, os.path.join(out_dir, "curves.png"))]
     if with_state:
@@ -301,11 +303,13 @@ def plot_runs(run_dirs: Sequence[str], out_dir: str, with_state: bool = True) ->
             r = _split_label(r)[1]
             tag = "" if len(run_dirs) == 1 else os.path.basename(os.path.normpath(r)) + "_"
             cfg, state = load_run(r)
-            _, res = evaluate(state, jax.random.PRNGKey(0), max(4, cfg.eval_episodes))
-            it = int(state.counters.iteration)
-            paths.append(plot_trajectory(cfg, res, os.path.join(out_dir, f"{tag}trajectory.png"),
-                                         title=f"{cfg.env} {cfg.algo}, iteration {it}, "
-                                               f"{int(state.counters.env_steps)} env steps"))
+            if trajectory:
+                _, res = evaluate(state, jax.random.PRNGKey(0), max(4, cfg.eval_episodes))
+                it = int(state.counters.iteration)
+                paths.append(plot_trajectory(
+                    cfg, res, os.path.join(out_dir, f"{tag}trajectory.png"),
+                    title=f"{cfg.env} {cfg.algo}, iteration {it}, "
+                          f"{int(state.counters.env_steps)} env steps"))
             paths.append(plot_classifiers(cfg, state, os.path.join(out_dir, f"{tag}classifiers.png")))
     return paths
 
