@@ -525,9 +525,8 @@ def grow_chain(chain: Chain, start_xy) -> Chain:
 def _retarget_stalled(chain: Chain) -> Chain:
     """Step 0 of :func:`grow_chain`: stalled options in gestation target their grandparent."""
     cfg = chain.cfg
-    idx = jnp.arange(cfg.max_options)
     par = jnp.clip(chain.parent, 0)
-    stalled = ((chain.status == GESTATION) & (idx > GOAL) & (chain.parent > GOAL)
+    stalled = ((chain.status == GESTATION) & (chain.parent > GOAL)      # links only
                & (chain.executions >= cfg.gestation_patience * (chain.successes + 1))
                & (chain.successes < cfg.gestation))
     s1, s2 = stalled[:, None], stalled[:, None, None]
