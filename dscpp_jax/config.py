@@ -29,7 +29,7 @@ MODEL_BASED_ALGOS = ("mb_dscpp", "mb_flat", "mb_flat_value")
 # Runs written since also record every default beside their config ("config_defaults").
 RETIRED_FIELDS: dict[str, Any] = dict(
     td3_upright_weight=0.0, td3_upright_min=0.5, td3_absorb_fallen=False,
-    mpc_upright_weight=0.0, mpc_upright_min=0.5)
+    mpc_upright_weight=0.0, mpc_upright_min=0.5, gestation_patience=0)
 # Fields only the host driver reads (the TrainState carries `Config.device_view()`).
 HOST_ONLY_DEFAULTS = dict(seed=0, total_env_steps=1, total_episodes=0, eval_every=0,
                           log_every=1, checkpoint_every=0, keep_checkpoints=1, preset="paper")
@@ -64,8 +64,6 @@ class Config:
     warmup_episodes: int = 50          # uniform-random episodes from the task start
     goal_tolerance: float = 0.6
     gestation: int = 10
-    gestation_patience: int = 0        # 0: off (the paper). N: an option in gestation with
-                                       # N * (successes + 1) executions targets its grandparent
     buffer_len: int = 50
     option_timeout: int = 200
     max_options: int = 12              # fixed capacity of the option table (global + goal + links)
@@ -314,9 +312,6 @@ class Config:
              f"inband_eval_envs finished in-band episodes)")
         need(self.buffer_len < self.option_timeout + 1,
              "buffer_len must be <= option_timeout")
-        need(int(self.gestation_patience) >= 0,
-             f"gestation_patience={self.gestation_patience} must be >= 0 (0: off; e.g. 100 "
-             f"re-targets an option in gestation with no success in 100 executions)")
         need(0.0 <= float(self.task_start_prob) <= 1.0,
              f"task_start_prob={self.task_start_prob} must be in [0, 1] (the share of training "
              f"episodes that start at the task start; 0: all diverse starts)")

@@ -82,9 +82,6 @@ class ChainConfig:
     svm_tol: float = 1e-3
     svm_max_iter: Optional[int] = None
     svm_backend: str = "auto"    # "auto" (fused SMO kernel on GPUs, XLA loop elsewhere) | "xla" | "pallas"
-    gestation_patience: int = 0  # 0: off (the paper). Else an option in gestation that has failed
-                                 # this many executions per success (plus one) is re-targeted
-                                 # to its parent's parent, its examples cleared (grow_chain)
 
     def __post_init__(self):
         def need(ok, msg):
@@ -94,8 +91,6 @@ class ChainConfig:
         need(self.max_options >= 3, f"max_options={self.max_options} must be >= 3 (global option, "
              "goal option and at least one chain link)")
         need(self.gestation >= 1, f"gestation={self.gestation} must be >= 1")
-        need(self.gestation_patience >= 0,
-             f"gestation_patience={self.gestation_patience} must be >= 0 (0: off)")
         need(self.buffer_len >= 1, f"buffer_len={self.buffer_len} must be >= 1")
         need(self.option_timeout >= 1, f"option_timeout={self.option_timeout} must be >= 1")
         need(self.max_pos_traj >= 1, f"max_pos_traj={self.max_pos_traj} must be >= 1")
@@ -483,13 +478,6 @@ def start_covered(chain: Chain, start_xy) -> jax.Array:
 def grow_chain(chain: Chain, start_xy) -> Chain:
     """Maturity, then chain growth (call after :func:`refit`, once per learning iteration).
 
-    0. With ``gestation_patience`` N > 0: an option in gestation whose executions reach
-       N * (successes + 1) (no success in its first N executions, one in 2N, ...) and whose parent
-       is a chain link is re-targeted to its parent's parent, and its examples, classifiers and
-       counters are cleared. Where a chain has grown into a dead end or back into itself, the
-       option in gestation finds no uncovered state near its target and never matures; this
-       backs the chain's frontier up one link at a time until it can grow elsewhere (the chain
-       becomes a tree; a parent still has a smaller row index than its children).
     1. Options in gestation with at least ``gestation`` successes become mature.
     2. If no option is in gestation, the newest mature option has fitted classifiers, and no mature
        option's initiation set holds ``start_xy`` (pass the env's start state, ``env.start``), a
@@ -502,8 +490,6 @@ def grow_chain(chain: Chain, start_xy) -> Chain:
     if start_xy.shape != (2,):
         raise ValueError(f"grow_chain: start_xy must have shape (2,), got {start_xy.shape}")
     idx = jnp.arange(K)
-    if cfg.gestation_patience > 0:
-        chain = _retarget_stalled(chain)
     matured = (chain.status == GESTATION) & (chain.successes >= cfg.gestation)
     status = jnp.where(matured, MATURE, chain.status)
     chain = chain.replace(status=status)
@@ -520,30 +506,6 @@ def grow_chain(chain: Chain, start_xy) -> Chain:
     parent = chain.parent.at[slot].set(newest, mode="drop")
     return chain.replace(status=status, parent=parent, num_options=n + create.astype(jnp.int32),
                          capacity_hit=chain.capacity_hit | (want & ~room))
-
-
-def _retarget_stalled(chain: Chain) -> Chain:
-    """Step 0 of :func:`grow_chain`: stalled options in gestation target their grandparent."""
-    cfg = chain.cfg
-    par = jnp.clip(chain.parent, 0)
-    stalled = ((chain.status == GESTATION) & (chain.parent > GOAL)      # links only
-               & (chain.executions >= cfg.gestation_patience * (chain.successes + 1))
-               & (chain.successes < cfg.gestation))
-    s1, s2 = stalled[:, None], stalled[:, None, None]
-    clf = jax.tree_util.tree_map(
-        lambda e, c: jnp.where(stalled.reshape((-1,) + (1,) * (c.ndim - 1)), e, c),
-        _empty_classifiers(cfg), chain.clf)
-    return chain.replace(
-        parent=jnp.where(stalled, chain.parent[par], chain.parent),
-        successes=jnp.where(stalled, 0, chain.successes),
-        executions=jnp.where(stalled, 0, chain.executions),
-        pos_mask=jnp.where(s2, False, chain.pos_mask),
-        pos_count=jnp.where(stalled, 0, chain.pos_count),
-        neg_mask=jnp.where(s1, False, chain.neg_mask),
-        neg_count=jnp.where(stalled, 0, chain.neg_count),
-        clf=clf, fitted=chain.fitted & ~stalled, dirty=chain.dirty & ~stalled,
-        pess_ok=jnp.where(s2, False, chain.pess_ok),
-        robust_ok=jnp.where(s2, False, chain.robust_ok))
 
 
 def success_rates(chain: Chain) -> jax.Array:
@@ -574,8 +536,7 @@ def chain_metrics(chain: Chain, start_xy=None) -> dict:
         # tried and has succeeded so far; it matures at `ChainConfig.gestation` successes
         "gestation_executions": jnp.sum(jnp.where(gest, chain.executions, 0)),
         "gestation_successes": jnp.sum(jnp.where(gest, chain.successes, 0)),
-        # the row it targets (-1 while none); not the newest mature row once it was re-targeted
-        # (ChainConfig.gestation_patience)
+        # the row it targets (-1 while none)
         "gestation_parent": jnp.max(jnp.where(gest, chain.parent, -1)),
     }
     if start_xy is not None:

@@ -306,42 +306,6 @@ def test_metrics_follow_the_option_in_gestation(grown_chain):
     assert int(done["num_gestation"]) == int(done["gestation_executions"]) == 0
 
 
-def test_stalled_option_in_gestation_is_retargeted_to_its_grandparent(grown_chain):
-    # gestation_patience 4: option 3 (parent 2) is re-targeted once its executions reach
-    # 4 * (successes + 1); its examples and counters are cleared; an option whose parent is the
-    # goal option is never re-targeted
-    ch = grown_chain["link3_created"]
-    ch = ch.replace(cfg=ch.cfg.replace(gestation_patience=4))
-    assert list(np.asarray(ch.parent[:4])) == [-1, -1, 1, 2]
-    ch = grow(_events(ch, 3, REGIONS[3], 1, n_fail=6, seed=7), START_XY)   # 7 executions < 8
-    assert int(ch.parent[3]) == 2 and int(ch.executions[3]) == 7 and int(ch.successes[3]) == 1
-    assert int(ch.pos_count[3]) == 1 and int(ch.neg_count[3]) == 6
-    assert int(O.chain_metrics(ch)["gestation_parent"]) == 2
-    ch = refit(ch)
-    assert bool(ch.fitted[3])
-    ch = grow(_events(ch, 3, REGIONS[3], 0, n_fail=1, seed=8), START_XY)   # 8 = 4 * (1 + 1)
-    assert int(ch.parent[3]) == 1 and int(ch.status[3]) == O.GESTATION
-    assert int(ch.executions[3]) == int(ch.successes[3]) == 0
-    assert int(ch.pos_count[3]) == int(ch.neg_count[3]) == 0
-    assert not bool(ch.pos_mask[3].any()) and not bool(ch.neg_mask[3].any())
-    assert not bool(ch.fitted[3]) and not bool(ch.dirty[3])
-    assert int(O.chain_metrics(ch)["gestation_parent"]) == 1
-    # the other rows are untouched
-    np.testing.assert_array_equal(ch.status, grown_chain["link3_created"].status)
-    assert int(ch.num_options) == 4 and list(np.asarray(ch.parent[:3])) == [-1, -1, 1]
-    # its parent is now the goal option: no further re-targeting however often it fails
-    ch = grow(_events(ch, 3, REGIONS[3], 0, n_fail=8, seed=9), START_XY)
-    assert int(ch.parent[3]) == 1 and int(ch.executions[3]) == 8
-    # and it matures as usual once it succeeds `gestation` times
-    ch = grow(refit(_events(ch, 3, REGIONS[3], CFG.gestation, seed=10)), START_XY)
-    assert int(ch.status[3]) == O.MATURE
-
-
-def test_gestation_patience_must_not_be_negative():
-    with pytest.raises(ValueError, match="gestation_patience"):
-        O.ChainConfig(gestation_patience=-1)
-
-
 def test_growth_uses_the_given_start(grown_chain):
     ch = grown_chain["covered"]
     far = _uncovered_point(ch)
