@@ -300,10 +300,13 @@ def test_metrics_follow_the_option_in_gestation(grown_chain):
     gest = metrics(s["link2_gestating"], START_XY)   # link 2: g - 1 successful executions so far
     assert int(gest["num_gestation"]) == 1 and int(gest["num_mature"]) == 1
     assert int(gest["gestation_executions"]) == int(gest["gestation_successes"]) == g - 1
+    assert int(gest["gestation_parent"]) == 1                  # link 2 targets the goal option
     fresh = metrics(s["link3_created"], START_XY)     # link 3 just created: never tried yet
     assert int(fresh["gestation_executions"]) == int(fresh["gestation_successes"]) == 0
+    assert int(fresh["gestation_parent"]) == 2
     done = metrics(s["covered"], START_XY)            # nothing in gestation
     assert int(done["num_gestation"]) == int(done["gestation_executions"]) == 0
+    assert int(done["gestation_parent"]) == -1
 
 
 def test_growth_uses_the_given_start(grown_chain):
