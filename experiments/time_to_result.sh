@@ -3,11 +3,12 @@
 # evaluates in-band (32 envs, success every iteration) and 100 episodes at the end.
 #
 #   DEST=runs/ttr bash experiments/time_to_result.sh
-#   STAGES="probe cold warm" SEEDS_WARM="1 2 3 4" FOUR_ROOMS_ALGO=mf_dscpp
+#   STAGES="probe cold warm" SEEDS_COLD="0" SEEDS_WARM="1 2 3 4" FOUR_ROOMS_ALGO=mf_dscpp
 #
 # Stages:
 #   probe       where the start of a run goes (experiments/compile_breakdown.py), on empty caches
-#   cold        U-maze MB-DSC++ seed 0 on empty caches (XLA's and MuJoCo Warp's kernel cache)
+#   cold        U-maze MB-DSC++, seeds SEEDS_COLD one after another, each on empty caches (XLA's
+#               and MuJoCo Warp's kernel cache)
 #   warm        U-maze MB-DSC++, seeds SEEDS_WARM one after another, on the warm caches
 #   four_rooms  four rooms, FOUR_ROOMS_ALGO seed 0, warm caches of its own config (a first
 #               compile of its own: its cache entries are not U-maze's)
@@ -16,6 +17,7 @@
 set -uo pipefail
 DEST=${DEST:-runs/ttr}
 STAGES=${STAGES:-"probe cold warm"}
+SEEDS_COLD=${SEEDS_COLD:-0}
 SEEDS_WARM=${SEEDS_WARM:-"1 2 3 4"}
 FOUR_ROOMS_ALGO=${FOUR_ROOMS_ALGO:-mf_dscpp}
 export DSCPP_JAX_COMPILE_CACHE=${DSCPP_JAX_COMPILE_CACHE:-$PWD/$DEST/xla_cache}
@@ -26,7 +28,9 @@ pack() {
       -o -name eval.json -o -name '*.log' -o -name 'time_*.json' -o -name 'compile_*.json' \) \
       -print0 | tar czf results.tgz.tmp --null -T - && mv results.tgz.tmp results.tgz)
 }
-empty_caches() { rm -rf "$DSCPP_JAX_COMPILE_CACHE" "$HOME/.cache/warp"; }
+# MuJoCo Warp's kernel cache: WARP_CACHE_PATH where set (a cache of its own for this script, so
+# that emptying it leaves other runs on the host alone), else ~/.cache/warp.
+empty_caches() { rm -rf "$DSCPP_JAX_COMPILE_CACHE" "${WARP_CACHE_PATH:-$HOME/.cache/warp}"; }
 { nvidia-smi --query-gpu=name,memory.total --format=csv,noheader || echo "no GPU"; } \
   > "$DEST/gpu.log" 2>&1
 train_timed() {   # name, then train arguments: wall-clock of the whole command into time_NAME.json
@@ -50,9 +54,12 @@ for stage in $STAGES; do
         --out "$DEST/compile_warm.json" > "$DEST/probe_warm.log" 2>&1
       log "probe warm exit $?" ;;
     cold)
-      empty_caches
-      log "cold: u_maze mb_dscpp seed 0"
-      train_timed u_maze_s0_cold --env u_maze --algo mb_dscpp --seed 0 ;;
+      for s in $SEEDS_COLD; do
+        empty_caches
+        log "cold: u_maze mb_dscpp seed $s"
+        train_timed "u_maze_s${s}_cold" --env u_maze --algo mb_dscpp --seed "$s"
+        pack
+      done ;;
     warm)
       for s in $SEEDS_WARM; do
         log "warm: u_maze mb_dscpp seed $s"
