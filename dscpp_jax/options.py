@@ -521,6 +521,11 @@ def chain_probability(chain: Chain) -> jax.Array:
     return jnp.prod(jnp.where(in_chain, success_rates(chain), 1.0))
 
 
+# A point farther from any maze than an RBF kernel reaches (exp(-gamma * 2e12) is 0 in float32
+# for any gamma above 1e-10): a region that holds it holds everything far from its examples.
+UNBOUNDED_PROBE_XY = (1e6, 1e6)
+
+
 def chain_metrics(chain: Chain, start_xy=None) -> dict:
     """Scalars for logging under ``options/...`` (reduced on the device)."""
     gest = chain.status == GESTATION
@@ -538,6 +543,12 @@ def chain_metrics(chain: Chain, start_xy=None) -> dict:
         "gestation_successes": jnp.sum(jnp.where(gest, chain.successes, 0)),
         # the row it targets (-1 while none)
         "gestation_parent": jnp.max(jnp.where(gest, chain.parent, -1)),
+        # mature options whose initiation set has no bound: the two-class SVC's value far from
+        # every example is its intercept, and when an option's failures start among its
+        # successes the fit can put that above zero, so the region holds the whole plane but
+        # the examples' own neighbourhood (and counts the start as covered)
+        "unbounded_regions": jnp.sum(_classify_all(chain, UNBOUNDED_PROBE_XY)[0]
+                                     & (chain.status == MATURE)),
     }
     if start_xy is not None:
         m["start_covered"] = start_covered(chain, start_xy).astype(jnp.int32)

@@ -92,7 +92,8 @@ def plot_trajectory(cfg, result, path: str, title: str = "", max_episodes: int =
 
 
 def plot_classifiers(cfg, state, path: str, resolution: int = 80) -> str:
-    """Each fitted option's optimistic region (filled) and pessimistic region (black contour)."""
+    """Each fitted option's optimistic region (filled) and pessimistic region (black contour),
+    titled with its parent and how many of its training executions succeeded (all so far)."""
     import jax
     import jax.numpy as jnp
 
@@ -136,11 +137,12 @@ def plot_classifiers(cfg, state, path: str, resolution: int = 80) -> str:
             ax.scatter(pos[::7, 0], pos[::7, 1], s=2, c="tab:blue", zorder=3)
         name = "goal option" if k == 1 else f"option {k} (-> {int(chain.parent[k])})"
         st = {1: "gestation", 2: "mature"}.get(int(status[k]), "")
-        ax.set_title(f"{name}, {st}", fontsize=9)
+        ok, tried = int(chain.successes[k]), int(chain.executions[k])
+        ax.set_title(f"{name}, {st}\n{ok} of {tried} executions succeeded", fontsize=9)
         ax.legend().set_visible(False) if ax.get_legend() else None
     fig.suptitle(f"{cfg.env} {cfg.algo}: optimistic (red) and pessimistic (black) regions",
                  fontsize=10)
-    _save(fig, path)
+    _save(fig, path, rect=(0, 0, 1, 1 - 0.35 / (3.6 * nrow)))   # the suptitle above the titles
     return path
 
 

@@ -309,6 +309,32 @@ def test_metrics_follow_the_option_in_gestation(grown_chain):
     assert int(done["gestation_parent"]) == -1
 
 
+def test_unbounded_regions_counts_mature_options_whose_region_has_no_bound(grown_chain):
+    """An optimistic SVC whose intercept is above zero holds every point far from its examples
+    (a fit that happens: successes spread out, failures clustered among them, as scikit-learn
+    fits it too); `unbounded_regions` counts such mature options, and only those."""
+    from dscpp_jax import initiation as I
+    rng = np.random.default_rng(0)
+    pos = rng.uniform(-5, 5, (60, 2)).astype(np.float32)
+    neg = rng.normal(0, 0.7, (40, 2)).astype(np.float32)
+    clf = I.fit_initiation(jnp.asarray(pos), jnp.ones(60, bool), jnp.asarray(neg), jnp.ones(40, bool))
+    far = jnp.asarray(O.UNBOUNDED_PROBE_XY, jnp.float32)
+    assert float(clf.optimistic.rho) < 0
+    assert bool(I.initiation_contains(clf, far)) and bool(I.initiation_contains(clf, jnp.array([60.0, -45.0])))
+    assert not bool(I.initiation_contains(clf, jnp.zeros(2)))      # the failures' neighbourhood
+    sk = pytest.importorskip("sklearn.svm").SVC(C=1.0, gamma=0.5, class_weight="balanced").fit(
+        np.concatenate([pos, neg]), np.r_[np.ones(60), -np.ones(40)])
+    assert sk.decision_function([[60.0, -45.0]])[0] > 0
+
+    metrics = jax.jit(O.chain_metrics)
+    ch = grown_chain["covered"]                                    # rows 1-3 mature, bounded
+    assert int(metrics(ch, START_XY)["unbounded_regions"]) == 0
+    for row, want in ((2, 1), (4, 0)):                             # row 4 is free: not counted
+        rho = ch.clf.optimistic.rho.at[row].set(-1.0)
+        bad = ch.replace(clf=ch.clf.replace(optimistic=ch.clf.optimistic.replace(rho=rho)))
+        assert int(metrics(bad, START_XY)["unbounded_regions"]) == want
+
+
 def test_growth_uses_the_given_start(grown_chain):
     ch = grown_chain["covered"]
     far = _uncovered_point(ch)
