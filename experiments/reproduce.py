@@ -568,20 +568,34 @@ def figA3(data: Data, out: str) -> Optional[str]:
 # ------------------------------------------------------------------------------------------------
 # Figure 4 and appendix Figure 1: states from checkpoints (JAX from here on)
 # ------------------------------------------------------------------------------------------------
-def _cached(path: str, step: int):
+def _cached(path: str, step: Optional[int]):
+    """The cached evaluation at `path` if it was made at checkpoint `step` (None: any step, for
+    lean copies of runs whose checkpoints are gone)."""
     if os.path.isfile(path):
         z = np.load(path)
-        if int(z["step"]) == step:
+        if step is None or int(z["step"]) == step:
             return {k: z[k] for k in z.files}
     return None
 
 
-def corner_eval(seed_dir: str, step: int) -> dict:
+def cached_a1_steps(seed_dir: str) -> list:
+    """The checkpoints that appendix Figure 1's evaluations were cached at in SEED_DIR."""
+    try:
+        names = os.listdir(seed_dir)
+    except OSError:
+        return []
+    pre, suf = "reproduce_a1_", ".npz"
+    return sorted(int(n[len(pre):-len(suf)]) for n in names
+                  if n.startswith(pre) and n.endswith(suf) and n[len(pre):-len(suf)].isdigit())
+
+
+def corner_eval(seed_dir: str, step: Optional[int]) -> Optional[dict]:
     """Episodes from the four corners with the evaluation policy (as `eval --starts`), cached
-    in SEED_DIR/reproduce_fig4.npz for the checkpoint `step`."""
+    in SEED_DIR/reproduce_fig4.npz for the checkpoint `step`. `step` None (no checkpoint left):
+    the cached result, whichever checkpoint it came from, or None."""
     path = os.path.join(seed_dir, "reproduce_fig4.npz")
     got = _cached(path, step)
-    if got is not None:
+    if got is not None or step is None:
         return got
     import jax
 
@@ -612,9 +626,9 @@ def fig4(data: Data, out: str) -> Optional[str]:
         per_seed = []
         for d in data.dirs(exp):
             steps = checkpoint_steps(data.info[exp]["dir"])
-            if not steps:
+            r = corner_eval(d, steps[-1] if steps else None)
+            if r is None:
                 continue
-            r = corner_eval(d, steps[-1])
             per_seed.append((d, r))
             for (sx, sy), st, su, rt in zip(CORNERS, r["steps"], r["success"], r["ret"]):
                 rows.append([exp.subgoal, exp.run_env(data.args.env_map), exp.algo,
@@ -667,12 +681,13 @@ def fig4(data: Data, out: str) -> Optional[str]:
     return path
 
 
-def goal_regions(seed_dir: str, step: int, resolution: int) -> dict:
+def goal_regions(seed_dir: str, step: int, resolution: int, recompute: bool = True) -> dict:
     """The goal option's optimistic and pessimistic decision values on a grid over the arena at
-    checkpoint `step`, cached in SEED_DIR/reproduce_a1_<step>.npz."""
+    checkpoint `step`, cached in SEED_DIR/reproduce_a1_<step>.npz (made again at another
+    `resolution` unless `recompute` is off: a lean copy without checkpoints)."""
     path = os.path.join(seed_dir, f"reproduce_a1_{step}.npz")
     got = _cached(path, step)
-    if got is not None and got["opt"].shape[0] == resolution:
+    if got is not None and (got["opt"].shape[0] == resolution or not recompute):
         return got
     import jax
     import jax.numpy as jnp
@@ -707,22 +722,27 @@ def _pick(steps: list, k: int) -> list:
 def figA1(data: Data, out: str) -> Optional[str]:
     from dscpp_jax.plots import _draw_maze, _layout
     from dscpp_jax.run_logging import load_config
-    exps = [e for e in data.figs["A1"] if data.dirs(e)]
-    if not exps:
-        return None
     k = data.args.a1_panels
+    todo = []   # (exp, seed dir, checkpoints kept, checkpoints shown)
+    for e in data.figs["A1"]:
+        if data.dirs(e):
+            d = data.dirs(e)[0]
+            kept = checkpoint_steps(data.info[e]["dir"])
+            steps = _pick(kept or cached_a1_steps(d), k)
+            if steps:
+                todo.append((e, d, kept, steps))
+    if not todo:
+        return None
     plt = _plt()
-    fig, axes = plt.subplots(len(exps), k, figsize=(3.6 * k, 3.6 * len(exps)), squeeze=False)
+    fig, axes = plt.subplots(len(todo), k, figsize=(3.6 * k, 3.6 * len(todo)), squeeze=False)
     rows = []
-    for i, exp in enumerate(exps):
-        d = data.dirs(exp)[0]
+    for i, (exp, d, kept, steps) in enumerate(todo):
         cfg = load_config(d)
         layout = _layout(cfg)
-        steps = _pick(checkpoint_steps(data.info[exp]["dir"]), k)
         for ax in axes[i]:
             ax.axis("off")
         for j, step in enumerate(steps):
-            r = goal_regions(d, step, data.args.a1_resolution)
+            r = goal_regions(d, step, data.args.a1_resolution, recompute=bool(kept))
             cell = (r["gx"][0, 1] - r["gx"][0, 0]) * (r["gy"][1, 0] - r["gy"][0, 0])
             a_opt, a_pes = float((r["opt"] > 0).sum() * cell), float((r["pes"] > 0).sum() * cell)
             rows.append([exp.algo, exp.run_env(data.args.env_map), os.path.basename(d), step,
@@ -739,7 +759,7 @@ def figA1(data: Data, out: str) -> Optional[str]:
             ax.set_title(f"{NAMES[exp.algo]}: iteration {step}, {int(r['episodes'])} episodes",
                          fontsize=9)
     fig.suptitle("goal option: optimistic region (red), pessimistic contour (black)"
-                 + (" (DSC: one classifier)" if any(e.algo == "dsc" for e in exps) else ""),
+                 + (" (DSC: one classifier)" if any(t[0].algo == "dsc" for t in todo) else ""),
                  fontsize=10)
     fig.tight_layout()
     path = os.path.join(out, "figA1.png")

@@ -123,6 +123,23 @@ def test_reproduce_trains_draws_reports_then_skips(tmp_path, capsys, monkeypatch
     assert reproduce.main(_args(lean, out, "--fig", "5,6,A3", "--dry-run")) == 0
     text = capsys.readouterr().out
     assert text.count("skipped (finished)") == 2 and "would" not in text
+    # ... and, with the cached evaluations kept beside each seed, draws Figure 4 and appendix
+    # Figure 1 without checkpoints, with the same numbers
+    lean_out = str(tmp_path / "lean_out")
+    assert reproduce.main(_args(lean, lean_out, "--report-only")) == 0
+    capsys.readouterr()
+    for fig in ("fig4", "figA1"):
+        assert os.path.getsize(os.path.join(lean_out, fig + ".png")) > 1000, fig
+        assert _rows(os.path.join(lean_out, fig + ".csv")) == _rows(os.path.join(out, fig + ".csv"))
+    shutil.rmtree(lean_out)
+    for root, _, files in os.walk(lean):   # a lean copy without them: not drawn, not claimed
+        for f in files:
+            if f.startswith("reproduce_") and f.endswith(".npz"):
+                os.remove(os.path.join(root, f))
+    assert reproduce.main(_args(lean, lean_out, "--report-only")) == 0
+    text = capsys.readouterr().out
+    assert "figure 4: no runs yet" in text and "figure A1: no runs yet" in text
+    assert not os.path.exists(os.path.join(lean_out, "fig4.png"))
 
     # a longer schedule continues a group from its checkpoint; a directory without a checkpoint
     # (killed before its first) is started again
