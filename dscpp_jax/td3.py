@@ -15,8 +15,8 @@ Typical use::
 
 One TD3 per option (``Config.shared_critic=False``): :func:`td3_init_per_option` stacks
 independent states on a leading option axis, :func:`td3_option` picks one out (per env under a
-vmap), and :func:`td3_updates_per_option` updates all of them in one vmap, each option on the
-replay entries it collected.
+vmap), and :func:`td3_updates_per_option` shares one iteration's gradient steps among them in
+proportion to the replay entries each option collected, each on its own entries.
 
 All functions take the frozen config as their first (static) argument; jit them with
 ``static_argnums=0`` or call them inside your own jitted code.
@@ -419,10 +419,6 @@ def td3_updates(
 # ------------------------------------------------------------------------------------------------
 # One TD3 per option (``Config.shared_critic=False``)
 # ------------------------------------------------------------------------------------------------
-OPTION_AXIS = "options"
-"""The vmap axis name over the options of :func:`td3_updates_per_option`."""
-
-
 def td3_init_per_option(key: jax.Array, num_options: int, obs_dim: int, goal_dim: int,
                         action_dim: int, cfg: TD3Config) -> TD3State:
     """``num_options`` independent :func:`td3_init` states (one key each, split from ``key``),
@@ -451,29 +447,61 @@ def td3_updates_per_option(
     sample_block: int = 1,
     seed_axis: Optional[str] = None,
 ) -> Tuple[TD3State, Dict[str, jax.Array]]:
-    """:func:`td3_updates` for every option at once (one ``vmap`` over the option axis of
-    ``state``, see :func:`td3_init_per_option`): option ``k`` takes ``num_steps`` steps on
-    minibatches drawn only from the buffer entries with ``option_ids == k`` (``option_ids`` has the
-    buffer's ``valid`` shape). ``buffer`` must be a :class:`dscpp_jax.replay.Replay`; each option
-    samples from a view of it whose ``valid`` mask is restricted to its own entries.
+    """``num_steps`` gradient steps shared among the per-option TD3s of ``state`` (see
+    :func:`td3_init_per_option`), each option learning only from its own transitions.
 
-    An option without any valid entry keeps its state unchanged (a select, not a branch: its
-    steps run on whatever the empty view yields and are discarded). Metrics are means over the
-    options that learned; ``options_learning`` counts them."""
+    The steps come in rounds of ``sample_block`` (the remainder in rounds of one). Each round goes
+    to one option, drawn with probability proportional to its entries in the replay
+    (``option_ids == k``, ``option_ids`` has the buffer's ``valid`` shape), and runs
+    :func:`td3_update` on minibatches drawn from the view of the buffer whose ``valid`` mask holds
+    only that option's entries. So the options together take as many steps as one shared TD3, and
+    an option learns in proportion to the experience it collected, as when each option's TD3
+    takes a step per transition it gathers. An option without entries is never drawn and keeps
+    its state; with an empty buffer nothing changes. ``buffer`` must be a
+    :class:`dscpp_jax.replay.Replay`.
+
+    Metrics: means over the steps; ``options_learning`` counts the options that took a step."""
+    num_steps, sample_block = int(num_steps), int(sample_block)
+    if num_steps < 1:
+        raise ValueError(f"td3_updates_per_option: num_steps must be >= 1, got {num_steps}")
+    if sample_block < 1:
+        raise ValueError(f"td3_updates_per_option: sample_block must be >= 1, got {sample_block}")
     K = jax.tree_util.tree_leaves(state)[0].shape[0]
-    axes = OPTION_AXIS if seed_axis is None else (seed_axis, OPTION_AXIS)
+    n = cfg.batch_size
+    ids = jnp.where(buffer.valid, option_ids, -1)
+    counts = jnp.sum(ids.reshape(-1)[:, None] == jnp.arange(K, dtype=ids.dtype)[None, :], axis=0)
+    has_any = jnp.sum(counts) > 0
+    logits = jnp.where(counts > 0, jnp.log(jnp.maximum(counts, 1).astype(jnp.float32)), -jnp.inf)
 
-    def one(st, k, kk):
+    def round_(st_all, kk, block):
+        k_opt, k_s, k_u = jax.random.split(kk, 3)
+        k = jnp.where(has_any, jax.random.categorical(k_opt, jnp.where(has_any, logits, 0.0)), 0)
         view = buffer.replace(valid=buffer.valid & (option_ids == k))
-        has = jnp.any(view.valid)
-        new, m = td3_updates(cfg, st, view, kk, num_steps, sample_fn, sample_block, axes)
-        new = jax.tree_util.tree_map(lambda a, b: jnp.where(has, a, b), new, st)
-        return new, m, has
+        batches = jax.tree_util.tree_map(lambda x: x.reshape((block, n) + x.shape[1:]),
+                                         sample_fn(k_s, view, block * n))
+        st, ms = jax.lax.scan(lambda s, bk: td3_update(cfg, s, bk[0], bk[1], seed_axis),
+                              td3_option(st_all, k), (batches, jax.random.split(k_u, block)))
+        st_all = jax.tree_util.tree_map(
+            lambda a, b: a.at[k].set(jnp.where(has_any, b, a[k])), st_all, st)
+        return st_all, (ms, jnp.broadcast_to(k, (block,)))
 
-    new, ms, has = jax.vmap(one, axis_name=OPTION_AXIS)(
-        state, jnp.arange(K, dtype=jnp.int32), jax.random.split(key, K))
-    w = has.astype(jnp.float32)
-    n = jnp.maximum(jnp.sum(w), 1.0)
-    metrics = {k: jnp.sum(jnp.where(has, v, 0.0)) / n for k, v in ms.items()}
-    metrics["options_learning"] = jnp.sum(w)
-    return new, metrics
+    n_blocks, rest = divmod(num_steps, sample_block)
+    k_blocks, k_rest = jax.random.split(key)
+    parts = []
+    if n_blocks:
+        state, got = jax.lax.scan(lambda s, kk: round_(s, kk, sample_block), state,
+                                  jax.random.split(k_blocks, n_blocks))
+        parts.append(jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:]), got))
+    if rest:
+        state, got = jax.lax.scan(lambda s, kk: round_(s, kk, 1), state,
+                                  jax.random.split(k_rest, rest))
+        parts.append(jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:]), got))
+    ms, chosen = jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs), *parts)
+    w = has_any.astype(jnp.float32)
+    n_actor = jnp.maximum(jnp.sum(ms["actor_updated"]), 1.0)
+    metrics = {k: w * jnp.mean(v) for k, v in ms.items() if k not in ("actor_loss", "actor_updated")}
+    metrics["actor_loss"] = w * jnp.sum(ms["actor_loss"]) / n_actor
+    metrics["actor_updates"] = w * jnp.sum(ms["actor_updated"])
+    learned = jnp.any(chosen[:, None] == jnp.arange(K, dtype=chosen.dtype)[None, :], axis=0)
+    metrics["options_learning"] = w * jnp.sum(learned.astype(jnp.float32))
+    return state, metrics

@@ -647,8 +647,8 @@ def _learn(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[str
                               td3_sample_fn(config, env), sample_block=config.td3_sample_block,
                               seed_axis=seed_axis)
     else:
-        # every option takes as many steps as the shared TD3 would in total, on minibatches of
-        # the transitions gathered while it ran (HER within those segments); one vmap over options
+        # the shared TD3's steps, shared among the options in proportion to the replay entries
+        # each collected; each learns on minibatches of its own transitions (HER within them)
         td3, tm = td3_updates_per_option(tcfg, state.td3, state.replay, state.replay.data.option,
                                          k_td3, config.td3_updates, td3_sample_fn(config, env),
                                          sample_block=config.td3_sample_block,
