@@ -157,6 +157,13 @@ def _overrides(pairs) -> dict:
     return parse(list(pairs))
 
 
+def say(msg: str, flush: bool = True) -> None:
+    """One line to stdout in a single write: train calls report from several threads at once."""
+    sys.stdout.write(msg + "\n")
+    if flush:
+        sys.stdout.flush()
+
+
 def checkpoint_steps(group_dir: str) -> list:
     d = os.path.join(group_dir, "checkpoints")
     if not os.path.isdir(d):
@@ -279,23 +286,23 @@ def train_one(exp: Exp, args, gpus, per_gpu: int = 1) -> str:
     if st in ("finished", "unfinished"):
         bad = config_mismatch(gdir, exp, args)
         if bad:
-            print(f"[reproduce] {name}: left as it is: the group was made with other settings "
+            say(f"[reproduce] {name}: left as it is: the group was made with other settings "
                   f"({'; '.join(bad)}) and the figures show it as made. To train it with these "
                   f"settings, move {gdir} away or use another --runs-root", flush=True)
             return "mismatch"
     if st == "finished":
-        print(f"[reproduce] {name}: skipped (finished)", flush=True)
+        say(f"[reproduce] {name}: skipped (finished)", flush=True)
         return "skipped"
     resume = st == "unfinished"
     cmd = train_command(exp, gdir, args, resume)
     shown = " ".join(["python"] + cmd[1:])
     if args.dry_run:
-        print(f"[reproduce] {name}: would {'resume' if resume else 'start'}: {shown}", flush=True)
+        say(f"[reproduce] {name}: would {'resume' if resume else 'start'}: {shown}", flush=True)
         return "dry-run"
     if st == "stale":
         aside = f"{gdir}.stale-{time.strftime('%Y%m%d-%H%M%S')}"
         shutil.move(gdir, aside)
-        print(f"[reproduce] {name}: no checkpoint, moved aside to {aside}", flush=True)
+        say(f"[reproduce] {name}: no checkpoint, moved aside to {aside}", flush=True)
     logs = os.path.join(args.runs_root, "logs")
     os.makedirs(logs, exist_ok=True)
     log = os.path.join(logs, f"{name}.log")
@@ -309,7 +316,7 @@ def train_one(exp: Exp, args, gpus, per_gpu: int = 1) -> str:
         # several calls on one GPU: each may take its share, not JAX's default 75 %
         env["XLA_PYTHON_CLIENT_MEM_FRACTION"] = f"{0.9 / share:.2f}"
     where = f" on GPU {gpu}" if gpu is not None else ""
-    print(f"[reproduce] {name}: {'resumed' if resume else 'started'}{where} (log: {log})",
+    say(f"[reproduce] {name}: {'resumed' if resume else 'started'}{where} (log: {log})",
           flush=True)
     t0 = time.time()
     try:
@@ -322,11 +329,11 @@ def train_one(exp: Exp, args, gpus, per_gpu: int = 1) -> str:
             gpus.put(gpu)
     dt = time.time() - t0
     if rc != 0:
-        print(f"[reproduce] {name}: train FAILED (exit {rc}, {dt:.0f}s); see {log}", flush=True)
+        say(f"[reproduce] {name}: train FAILED (exit {rc}, {dt:.0f}s); see {log}", flush=True)
         return f"failed ({rc})"
     word = ("finished" if group_state(gdir, sched) == "finished"
             else "stopped at the time budget; run again to continue")
-    print(f"[reproduce] {name}: {word} ({dt:.0f}s)", flush=True)
+    say(f"[reproduce] {name}: {word} ({dt:.0f}s)", flush=True)
     return "resumed" if resume else "trained"
 
 
@@ -1108,7 +1115,7 @@ def main(argv: Optional[list] = None) -> int:
         ids = visible_gpus()
         if len(ids) > 1:
             args.gpus, args.jobs = ",".join(ids), max(args.jobs, len(ids))
-            print(f"[reproduce] {len(ids)} GPUs: each train call takes one of them "
+            say(f"[reproduce] {len(ids)} GPUs: each train call takes one of them "
                   f"(--gpus {args.gpus} --jobs {args.jobs}; pass --gpus to choose)", flush=True)
     if args.runs_root and not os.path.isabs(args.runs_root):
         args.runs_root = os.path.join(ROOT, args.runs_root)
@@ -1132,9 +1139,9 @@ def main(argv: Optional[list] = None) -> int:
             path = makers[fig](data, args.out)
             figures[fig] = path
             if fig in figs or path:
-                print(f"[reproduce] figure {fig}: {path or 'no runs yet'}", flush=True)
+                say(f"[reproduce] figure {fig}: {path or 'no runs yet'}", flush=True)
     readme = write_readme(data, args, figures, status)
-    print(f"[reproduce] {readme}")
+    say(f"[reproduce] {readme}")
     return 1 if any(str(v).startswith(("failed", "mismatch")) for v in status.values()) else 0
 
 
