@@ -1091,7 +1091,33 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--deterministic", action=argparse.BooleanOptionalAction, default=True,
                    help="deterministic GPU kernels in train and in the evaluations here")
     p.add_argument("--compile-cache", default=None, metavar="DIR")
+    p.add_argument("--export-lean", default=None, metavar="DIR",
+                   help="at the end, copy what results keep of every run under --runs-root to "
+                        "DIR (per seed metrics.csv, config.json, eval.json and the cached "
+                        "figure evaluations; group.json; the train logs), not the checkpoints")
     return p
+
+
+LEAN_FILES = ("metrics.csv", "config.json", "eval.json", "group.json")
+
+
+def export_lean(runs_root: str, dest: str) -> int:
+    """Copy the lean part of every group under `runs_root` to `dest` (same layout): what a
+    results directory commits, and all `--report-only` needs to redraw every figure. Returns the
+    number of files copied."""
+    n = 0
+    for root, dirs, files in os.walk(runs_root):
+        dirs[:] = [d for d in dirs if d != "checkpoints" and "xla_cache" not in d]
+        rel = os.path.relpath(root, runs_root)
+        in_logs = rel.split(os.sep)[0] == "logs"
+        for f in files:
+            keep = (f in LEAN_FILES or (f.startswith("reproduce_") and f.endswith(".npz"))
+                    or (in_logs and f.endswith(".log")))
+            if keep:
+                os.makedirs(os.path.join(dest, rel), exist_ok=True)
+                shutil.copy2(os.path.join(root, f), os.path.join(dest, rel, f))
+                n += 1
+    return n
 
 
 def main(argv: Optional[list] = None) -> int:
@@ -1142,6 +1168,9 @@ def main(argv: Optional[list] = None) -> int:
                 say(f"[reproduce] figure {fig}: {path or 'no runs yet'}", flush=True)
     readme = write_readme(data, args, figures, status)
     say(f"[reproduce] {readme}")
+    if args.export_lean:
+        n = export_lean(args.runs_root, args.export_lean)
+        say(f"[reproduce] lean copy of {args.runs_root}: {n} files in {args.export_lean}")
     return 1 if any(str(v).startswith(("failed", "mismatch")) for v in status.values()) else 0
 
 

@@ -119,7 +119,13 @@ def test_reproduce_trains_draws_reports_then_skips(tmp_path, capsys, monkeypatch
     # a lean copy of the runs (metrics, config, eval.json: what committed results keep, without
     # checkpoints) is finished too, and reports as the runs do
     lean = str(tmp_path / "lean")
-    shutil.copytree(runs, lean, ignore=shutil.ignore_patterns("checkpoints"))
+    assert reproduce.main(_args(runs, out, "--report-only", "--export-lean", lean)) == 0
+    capsys.readouterr()
+    kept = {os.path.relpath(os.path.join(r, f), lean) for r, _, fs in os.walk(lean) for f in fs}
+    assert not any("checkpoints" in k for k in kept)
+    assert os.path.join("point_u_maze-dsc-g0-1", "s1", "metrics.csv") in kept
+    assert os.path.join("logs", "point_u_maze-dsc-g0-1.log") in kept
+    assert sum(k.endswith("reproduce_fig4.npz") for k in kept) == 4   # 2 subgoals x 2 seeds
     assert reproduce.main(_args(lean, out, "--fig", "5,6,A3", "--dry-run")) == 0
     text = capsys.readouterr().out
     assert text.count("skipped (finished)") == 2 and "would" not in text
