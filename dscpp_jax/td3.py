@@ -277,13 +277,18 @@ def _polyak(tau: float, target: PyTree, online: PyTree) -> PyTree:
 
 def td3_update(
     cfg: TD3Config, state: TD3State, batch: Transition, key: jax.Array,
-    seed_axis: Optional[str] = None,
+    seed_axis: Optional[str] = None, actor: Optional[bool] = None,
 ) -> Tuple[TD3State, Dict[str, jax.Array]]:
     """One critic step; every ``policy_delay``-th call also an actor step and soft target update.
 
+    ``actor`` (static): None decides by the step count (``step % policy_delay == 0`` after this
+    step), with a ``lax.cond``; True or False takes or skips the actor step with no branch. On a
+    GPU every ``lax.cond`` copies its predicate to the host and waits for the device, so loops of
+    many steps place the actor steps themselves (:func:`td3_updates` does).
+
     ``seed_axis``: the name of an enclosing ``vmap`` axis over independent runs (seeds), if any
-    (or a tuple of such names, e.g. seeds and options); the actor step then runs when any run
-    needs it instead of on every call."""
+    (or a tuple of such names); with ``actor=None`` the actor step then runs when any run needs
+    it instead of on every call."""
     noise = td3_target_noise(cfg, key, batch.action.shape)
     y = jax.lax.stop_gradient(td3_targets(cfg, state, batch, noise))
 
@@ -319,7 +324,11 @@ def td3_update(
     do_actor = step % cfg.policy_delay == 0
     operand = (state.actor_params, state.actor_opt_state, state.target_actor_params,
                state.target_critic_params)
-    if seed_axis is None:
+    if actor is not None:
+        do_actor = jnp.asarray(bool(actor))
+        (actor_params, actor_opt_state, t_actor, t_critic), actor_loss = (
+            actor_step(operand) if actor else skip(operand))
+    elif seed_axis is None:
         (actor_params, actor_opt_state, t_actor, t_critic), actor_loss = jax.lax.cond(
             do_actor, actor_step, skip, operand)
     else:
@@ -352,6 +361,36 @@ def td3_update(
     return new_state, metrics
 
 
+def _scan_updates(cfg: TD3Config, state: TD3State, xs: PyTree,
+                  get: Callable[[PyTree], Tuple[Transition, jax.Array]],
+                  seed_axis: Optional[str], placed: bool = True
+                  ) -> Tuple[TD3State, Dict[str, jax.Array]]:
+    """One :func:`td3_update` per entry of ``xs`` (leading axis) as one ``lax.scan``;
+    ``get(x)`` gives that step's minibatch and update key.
+
+    When the steps make whole groups of ``policy_delay``, the actor step goes on the last step of
+    each group, placed statically: no ``lax.cond`` per step, which on a GPU would wait for the
+    device every step. That is the step-count rule of :func:`td3_update` whenever the state's
+    step count starts at a multiple of ``policy_delay``, as in training, where every call takes a
+    multiple of it. Other step counts (or ``placed=False``) decide per step by the step count."""
+    m = jax.tree_util.tree_leaves(xs)[0].shape[0]
+    d = cfg.policy_delay
+    if m % d or not placed:
+        return jax.lax.scan(lambda s, x: td3_update(cfg, s, *get(x), seed_axis), state, xs)
+    grouped = jax.tree_util.tree_map(lambda a: a.reshape((m // d, d) + a.shape[1:]), xs)
+
+    def group(s, g):
+        ms = []
+        for j in range(d):
+            batch, k = get(jax.tree_util.tree_map(lambda a: a[j], g))
+            s, mj = td3_update(cfg, s, batch, k, seed_axis, actor=(j == d - 1))
+            ms.append(mj)
+        return s, jax.tree_util.tree_map(lambda *a: jnp.stack(a), *ms)
+
+    state, ms = jax.lax.scan(group, state, grouped)
+    return state, jax.tree_util.tree_map(lambda a: a.reshape((m,) + a.shape[2:]), ms)
+
+
 def td3_updates(
     cfg: TD3Config,
     state: TD3State,
@@ -381,23 +420,25 @@ def td3_updates(
     if sample_block < 1:
         raise ValueError(f"td3_updates: sample_block must be >= 1, got {sample_block}")
     n = cfg.batch_size
+    # a call whose steps are not whole policy_delay groups decides every step by the step count,
+    # so that the next call still starts at a multiple of policy_delay when this one did not
+    placed = num_steps % cfg.policy_delay == 0
 
-    def body(st, k):
+    def sampled(k):    # one step's minibatch and update key from its key
         ks, ku = jax.random.split(k)
-        batch = sample_fn(ks, buffer, n)
-        st, m = td3_update(cfg, st, batch, ku, seed_axis)
-        return st, m
+        return sample_fn(ks, buffer, n), ku
 
     def block_body(st, k):
         ks, ku = jax.random.split(k)
         batches = jax.tree_util.tree_map(
             lambda x: x.reshape((sample_block, n) + x.shape[1:]),
             sample_fn(ks, buffer, sample_block * n))
-        return jax.lax.scan(lambda s, bk: td3_update(cfg, s, bk[0], bk[1], seed_axis), st,
-                            (batches, jax.random.split(ku, sample_block)))
+        return _scan_updates(cfg, st, (batches, jax.random.split(ku, sample_block)),
+                             lambda bk: bk, seed_axis, placed)
 
     if sample_block == 1:
-        state, ms = jax.lax.scan(body, state, jax.random.split(key, num_steps))
+        state, ms = _scan_updates(cfg, state, jax.random.split(key, num_steps), sampled,
+                                  seed_axis, placed)
     else:
         n_blocks, rest = divmod(num_steps, sample_block)
         k_blocks, k_rest = jax.random.split(key)
@@ -406,7 +447,8 @@ def td3_updates(
             state, mb = jax.lax.scan(block_body, state, jax.random.split(k_blocks, n_blocks))
             parts.append(jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:]), mb))
         if rest:
-            state, mr = jax.lax.scan(body, state, jax.random.split(k_rest, rest))
+            state, mr = _scan_updates(cfg, state, jax.random.split(k_rest, rest), sampled,
+                                      seed_axis, placed)
             parts.append(mr)
         ms = jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs), *parts)
     n_actor = jnp.maximum(jnp.sum(ms["actor_updated"]), 1.0)
@@ -479,8 +521,8 @@ def td3_updates_per_option(
         view = buffer.replace(valid=buffer.valid & (option_ids == k))
         batches = jax.tree_util.tree_map(lambda x: x.reshape((block, n) + x.shape[1:]),
                                          sample_fn(k_s, view, block * n))
-        st, ms = jax.lax.scan(lambda s, bk: td3_update(cfg, s, bk[0], bk[1], seed_axis),
-                              td3_option(st_all, k), (batches, jax.random.split(k_u, block)))
+        st, ms = _scan_updates(cfg, td3_option(st_all, k), (batches, jax.random.split(k_u, block)),
+                               lambda bk: bk, seed_axis)
         st_all = jax.tree_util.tree_map(
             lambda a, b: a.at[k].set(jnp.where(has_any, b, a[k])), st_all, st)
         return st_all, (ms, jnp.broadcast_to(k, (block,)))

@@ -270,6 +270,49 @@ def test_sample_block_draws_several_minibatches_at_once_and_updates_in_order():
         td3_updates(cfg, st0, None, key, 7, sample, sample_block=0)
 
 
+@pytest.mark.parametrize("block", [1, 4])
+def test_whole_delay_groups_place_the_actor_steps_without_a_branch(block):
+    """8 steps (whole groups of policy_delay 2) from a step count of 0: the actor steps are placed
+    on every second step with no lax.cond (on a GPU each one waits for the device), and the
+    result is td3_update's step-count rule applied step by step. 7 steps keep the cond."""
+    cfg = TD3Config.model_free(hidden=(16,), batch_size=B)
+    st0 = _perturbed_state(cfg, seed=7)
+    assert int(st0.step) == 0
+
+    def sample(k, buf, n):
+        return _batch_impl(k, n)
+
+    def run(steps):
+        return jax.jit(lambda s, k: td3_updates(cfg, s, None, k, steps, sample, sample_block=block))
+
+    key = jax.random.key(12)
+    st, m = run(8)(st0, key)
+    # the same steps one by one, deciding the actor step by the step count
+    steps = []
+    if block == 1:
+        for kk in jax.random.split(key, 8):
+            ks, ku = jax.random.split(kk)
+            steps.append((_batch_impl(ks, B), ku))
+    else:
+        for kb in jax.random.split(jax.random.split(key)[0], 8 // block):
+            ks, ku = jax.random.split(kb)
+            big = _batch_impl(ks, block * B)
+            for i, kk in enumerate(jax.random.split(ku, block)):
+                steps.append((jax.tree_util.tree_map(lambda x: x[i * B:(i + 1) * B], big), kk))
+    upd = jax.jit(td3_update, static_argnums=0)
+    ref, n_actor = st0, 0.0
+    for batch, kk in steps:
+        ref, mm = upd(cfg, ref, batch, kk)
+        n_actor += float(mm["actor_updated"])
+    assert int(st.step) == 8 and float(m["actor_updates"]) == n_actor == 4.0
+    for a, c in zip(jax.tree_util.tree_leaves(st), jax.tree_util.tree_leaves(ref)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(c), rtol=1e-5, atol=1e-6)
+    # the placed program has no conditional; 7 steps (not whole groups) decide per step
+    text = run(8).lower(st0, key).as_text()
+    assert "stablehlo.case" not in text and "stablehlo.if" not in text
+    assert "stablehlo.case" in run(7).lower(st0, key).as_text()
+
+
 def test_exploration_and_config():
     cfg = TD3Config.model_free(hidden=(16,))
     td3_explore = jax.jit(_td3_explore, static_argnums=0)

@@ -431,7 +431,10 @@ def test_mb_dscpp_learns_point_four_rooms(background, request):
     # experiments/results/train_point_four_rooms)
     summary, env_steps, num_options = _result(background, request)
     assert summary["eval/success_rate"] >= 0.8, (summary, env_steps)
-    assert num_options >= 4          # the chain spans at least two rooms
+    # the chain, not the global option, gets there: at least one link, and the global option ran
+    # for less than half of the evaluation's steps (a point-mass link can reach across a room, so
+    # the number of links alone says little)
+    assert num_options >= 3 and summary["eval/global_option_share"] < 0.5, (summary, num_options)
 
 
 def test_task_start_prob_outside_0_1_is_refused():
