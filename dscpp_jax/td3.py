@@ -391,6 +391,16 @@ def _scan_updates(cfg: TD3Config, state: TD3State, xs: PyTree,
     return state, jax.tree_util.tree_map(lambda a: a.reshape((m,) + a.shape[2:]), ms)
 
 
+def _summarise(ms: Dict[str, jax.Array]) -> Dict[str, jax.Array]:
+    """Per-step metrics (leading axis: the steps) as one call's: means over the steps,
+    ``actor_loss`` over the steps that updated the actor, ``actor_updates`` their number."""
+    n_actor = jnp.maximum(jnp.sum(ms["actor_updated"]), 1.0)
+    metrics = {k: jnp.mean(v) for k, v in ms.items() if k not in ("actor_loss", "actor_updated")}
+    metrics["actor_loss"] = jnp.sum(ms["actor_loss"]) / n_actor
+    metrics["actor_updates"] = jnp.sum(ms["actor_updated"])
+    return metrics
+
+
 def td3_updates(
     cfg: TD3Config,
     state: TD3State,
@@ -451,11 +461,7 @@ def td3_updates(
                                       seed_axis, placed)
             parts.append(mr)
         ms = jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs), *parts)
-    n_actor = jnp.maximum(jnp.sum(ms["actor_updated"]), 1.0)
-    metrics = {k: jnp.mean(v) for k, v in ms.items() if k not in ("actor_loss", "actor_updated")}
-    metrics["actor_loss"] = jnp.sum(ms["actor_loss"]) / n_actor
-    metrics["actor_updates"] = jnp.sum(ms["actor_updated"])
-    return state, metrics
+    return state, _summarise(ms)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -510,8 +516,8 @@ def td3_updates_per_option(
         raise ValueError(f"td3_updates_per_option: sample_block must be >= 1, got {sample_block}")
     K = jax.tree_util.tree_leaves(state)[0].shape[0]
     n = cfg.batch_size
-    ids = jnp.where(buffer.valid, option_ids, -1)
-    counts = jnp.sum(ids.reshape(-1)[:, None] == jnp.arange(K, dtype=ids.dtype)[None, :], axis=0)
+    # entries per option (invalid ones counted in an extra bin K and dropped)
+    counts = jnp.bincount(jnp.where(buffer.valid, option_ids, K).reshape(-1), length=K + 1)[:K]
     has_any = jnp.sum(counts) > 0
     logits = jnp.where(counts > 0, jnp.log(jnp.maximum(counts, 1).astype(jnp.float32)), -jnp.inf)
 
@@ -540,10 +546,7 @@ def td3_updates_per_option(
         parts.append(jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:]), got))
     ms, chosen = jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs), *parts)
     w = has_any.astype(jnp.float32)
-    n_actor = jnp.maximum(jnp.sum(ms["actor_updated"]), 1.0)
-    metrics = {k: w * jnp.mean(v) for k, v in ms.items() if k not in ("actor_loss", "actor_updated")}
-    metrics["actor_loss"] = w * jnp.sum(ms["actor_loss"]) / n_actor
-    metrics["actor_updates"] = w * jnp.sum(ms["actor_updated"])
-    learned = jnp.any(chosen[:, None] == jnp.arange(K, dtype=chosen.dtype)[None, :], axis=0)
-    metrics["options_learning"] = w * jnp.sum(learned.astype(jnp.float32))
+    metrics = {k: w * v for k, v in _summarise(ms).items()}
+    metrics["options_learning"] = w * jnp.sum(
+        (jnp.bincount(chosen, length=K) > 0).astype(jnp.float32))
     return state, metrics
