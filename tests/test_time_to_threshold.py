@@ -1,0 +1,45 @@
+"""experiments/time_to_threshold.py: the first full in-band window at or above the threshold."""
+import csv
+import json
+import os
+import sys
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, os.path.join(ROOT, "experiments"))
+import time_to_threshold as ttt  # noqa: E402
+
+sys.path.pop(0)
+
+
+def _metrics(path, rows):
+    with open(path, "w", newline="") as f:
+        w = csv.DictWriter(f, ["iteration", "episodes", "wall_clock", "inband/window",
+                               "inband/success_rate"])
+        w.writeheader()
+        for r in rows:
+            w.writerow(dict(zip(w.fieldnames, r)))
+
+
+def test_first_hit_needs_a_full_window_at_the_threshold(tmp_path):
+    p = str(tmp_path / "metrics.csv")
+    _metrics(p, [(1, 0, 5.0, 0, 0.0),
+                 (2, 10, 6.5, 3, 1.0),       # above, but the window is not full yet
+                 (3, 20, 8.0, 4, 0.75),      # full, below
+                 (4, 30, 9.5, 4, 0.8),       # the first hit
+                 (5, 40, 11.0, 4, 1.0)])
+    hit = ttt.first_hit(p, 0.8, window=4)
+    assert hit == dict(iteration=4, episodes=30, loop_s=9.5, success=0.8)
+    assert ttt.first_hit(p, 1.01, window=4) is None
+    assert ttt.first_hit(str(tmp_path / "missing.csv"), 0.8, window=4) is None
+
+
+def test_inband_window_follows_the_config(tmp_path):
+    d = tmp_path / "run"
+    assert ttt.inband_window(str(d)) is None
+    d.mkdir()
+    (d / "config.json").write_text(json.dumps(
+        {"config": {"inband_eval_envs": 32, "inband_eval_window": 0}}))
+    assert ttt.inband_window(str(d)) == 32
+    (d / "config.json").write_text(json.dumps(
+        {"config": {"inband_eval_envs": 32, "inband_eval_window": 64}}))
+    assert ttt.inband_window(str(d)) == 64
