@@ -55,6 +55,8 @@ A3_ALGOS = FIG5_ALGOS
 NAMES = {"td3_her": "TD3+HER", "mb_flat": "MB flat", "mb_flat_value": "MB flat + value",
          "dsc": "DSC", "dual": "DSC + dual classifiers", "mf_dscpp": "MF-DSC++",
          "mb_dscpp": "MB-DSC++"}
+# one colour per algorithm in every panel of a figure (tab10 in the order of NAMES)
+COLORS = {a: f"C{i}" for i, a in enumerate(NAMES)}
 CORNERS = ((9.0, 9.0), (-9.0, 9.0), (9.0, -9.0), (-9.0, -9.0))
 # appendix Figure 2's second arm: one TD3 actor + twin critic per option slot (model-free only)
 A2_SETS = ("shared_critic=false",)
@@ -486,7 +488,8 @@ def curve_figure(data: Data, panels: list, column: str, ylabel: str, path: str, 
                 rows.append([title, env, exp.algo] + extra + [exp.subgoal, int(g), m, s, n,
                                                                int(data.finished(exp))])
             label = arm[1][exp][1] if arm else NAMES[exp.algo]
-            line, = ax.plot(grid, mean, label=f"{label} (n={n})")
+            color = None if arm else COLORS.get(exp.algo)
+            line, = ax.plot(grid, mean, label=f"{label} (n={n})", color=color)
             if n > 1:
                 ax.fill_between(grid, mean - se, mean + se, color=line.get_color(), alpha=0.25)
             drawn += 1

@@ -269,3 +269,47 @@ def test_final_success_comes_from_eval_json_of_the_last_iteration(tmp_path):
         json.dump({"eval/success_rate": 1.0, "iteration": 2}, f)
     assert reproduce.final_evals(dirs, "eval/success_rate") is None
     assert reproduce.final_evals([], "eval/success_rate") is None
+
+
+def test_an_algorithm_keeps_its_colour_in_every_panel(tmp_path, monkeypatch):
+    """Figure 6's panels hold different sets of algorithms (a maze may lack a baseline's runs);
+    each algorithm must be drawn in the same colour in all of them."""
+    import types
+    from dscpp_jax.run_logging import RunLogger
+    plt = reproduce._plt()
+    figs = []
+
+    class Recorder:                    # pyplot that keeps the figures curve_figure closes
+        def __getattr__(self, name):
+            return getattr(plt, name)
+
+        def subplots(self, *a, **k):
+            fig, axes = plt.subplots(*a, **k)
+            figs.append(fig)
+            return fig, axes
+
+        def close(self, *a):
+            pass
+
+    monkeypatch.setattr(reproduce, "_plt", lambda: Recorder())
+    exps = {(m, a): reproduce.Exp(m, a, 10, "0") for m in ("u_maze", "medium")
+            for a in ("dsc", "mb_dscpp")}
+    dirs = {}
+    for e in exps.values():
+        d = str(tmp_path / f"{e.env}-{e.algo}")
+        log = RunLogger(d)
+        for i in (1, 2):
+            log.log({"iteration": i, "env_steps": 100 * i, "episodes": 5 * i,
+                     "eval/success_rate": 0.5})
+        log.close()
+        dirs[e] = [d]
+    data = types.SimpleNamespace(args=types.SimpleNamespace(env_map={}),
+                                 dirs=lambda e: dirs.get(e, []), finished=lambda e: True)
+    panels = [("U-maze", [exps["u_maze", "dsc"], exps["u_maze", "mb_dscpp"]]),
+              ("medium", [exps["medium", "mb_dscpp"]])]      # no DSC runs on this panel
+    assert reproduce.curve_figure(data, panels, "eval/success_rate", "success",
+                                  str(tmp_path / "f.png"), str(tmp_path / "f.csv"))
+    colours = [{ln.get_label().split(" (")[0]: ln.get_color() for ln in ax.get_lines()}
+               for ax in figs[0].axes]
+    assert colours[0]["MB-DSC++"] == colours[1]["MB-DSC++"] != colours[0]["DSC"]
+    plt.close(figs[0])
