@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 ALGOS = ("mb_dscpp", "mf_dscpp", "dual", "dsc", "td3_her", "mb_flat", "mb_flat_value")
-SUBGOALS = ("robust", "dp", "nearest")
+SUBGOALS = ("robust", "dp")
 PRESETS = ("paper", "fast")
 HIERARCHICAL_ALGOS = ("mb_dscpp", "mf_dscpp", "dual", "dsc")
 MODEL_BASED_ALGOS = ("mb_dscpp", "mb_flat", "mb_flat_value")
@@ -50,7 +50,7 @@ class Config:
                                        # auto (warp on a GPU with warp-lang installed, else jax)
     group_size: int = 1                # seeds trained together in one program (seed groups)
     algo: str = "mb_dscpp"             # one of ALGOS
-    subgoal: str = "robust"            # robust | dp | nearest
+    subgoal: str = "robust"            # robust | dp
     seed: int = 0
 
     # --- batching -----------------------------------------------------------------------------

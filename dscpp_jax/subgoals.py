@@ -97,26 +97,6 @@ def robust_subgoal(key, chain: Chain, option) -> jax.Array:
     return robust_subgoal_with_source(key, chain, option)[0]
 
 
-def nearest_subgoal(chain: Chain, option, xy) -> jax.Array:
-    """(2,) subgoal for ``option`` from its parent's positive examples, the one nearest to ``xy``
-    (the option's position) among those robust sampling would accept; the same fallbacks as
-    :func:`robust_subgoal` (inside the pessimistic region, then any positive, then the task goal),
-    each taken nearest. Deterministic: no key. ``subgoal="nearest"`` in the config."""
-    cfg = chain.cfg
-    P, L = cfg.max_pos_traj, cfg.traj_len
-    option = jnp.asarray(option, jnp.int32)
-    p = jnp.clip(chain.parent[option], 0)
-    pts = chain.pos_xy[p].reshape(P * L, 2)
-    robust = chain.robust_ok[p].reshape(-1)
-    pess = chain.pess_ok[p].reshape(-1)
-    valid = chain.pos_mask[p].reshape(-1)
-    mask = jnp.where(robust.any(), robust, jnp.where(pess.any(), pess, valid))
-    d2 = jnp.sum((pts - jnp.asarray(xy, jnp.float32)[:2]) ** 2, axis=-1)
-    best = pts[jnp.argmin(jnp.where(mask, d2, jnp.inf))]
-    is_link = (option > GOAL) & (chain.parent[option] >= 0) & valid.any()
-    return jnp.where(is_link, best, chain.goal_xy)
-
-
 # ------------------------------------------------------------------------------------------------
 # Hierarchically optimal subgoals (Algorithm 1)
 # ------------------------------------------------------------------------------------------------

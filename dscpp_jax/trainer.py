@@ -877,8 +877,6 @@ def _pick_subgoals(config: Config, chain, dp_table, td3, options, obs, keys):
     if config.subgoal == "dp":   # scored with the critic of the option that will pursue them
         return jax.vmap(lambda o, s: subgoals.pick_subgoal(
             dp_table, chain, o, s, _value_fn(config, td3, o)))(options, obs)
-    if config.subgoal == "nearest":
-        return jax.vmap(lambda o, s: subgoals.nearest_subgoal(chain, o, s[:2]))(options, obs)
     return jax.vmap(lambda k, o: subgoals.robust_subgoal(k, chain, o))(keys, options)
 
 

@@ -88,31 +88,6 @@ def test_goal_and_global_option_target_the_task_goal(wide_chain):
         assert int(src) == S.SRC_TASK_GOAL
 
 
-def test_nearest_subgoal_is_the_closest_state_robust_sampling_accepts(wide_chain):
-    ch = wide_chain
-    pos = np.asarray(ch.pos_xy[1]).reshape(-1, 2)
-    ok = np.asarray(ch.robust_ok[1]).reshape(-1)
-    near = jax.jit(jax.vmap(S.nearest_subgoal, in_axes=(None, None, 0)))
-    queries = np.random.default_rng(3).uniform(-4, 10, (32, 2)).astype(np.float32)
-    got = np.asarray(near(ch, 2, queries))
-    d = np.linalg.norm(pos[None] - queries[:, None], axis=-1)         # NumPy oracle
-    want = pos[np.argmin(np.where(ok[None], d, np.inf), axis=1)]
-    np.testing.assert_allclose(got, want)
-    assert len({tuple(g) for g in got}) > 1                # different places, different subgoals
-    for o in (O.GLOBAL, O.GOAL):
-        np.testing.assert_array_equal(S.nearest_subgoal(ch, o, queries[0]), GOAL_XY)
-
-
-def test_nearest_subgoal_falls_back_to_the_pessimistic_region():
-    ch = _chain_with_link(spread=0.05, seed=1)   # no state has its +-0.6 neighbourhood inside
-    pos = np.asarray(ch.pos_xy[1]).reshape(-1, 2)
-    pess = np.asarray(ch.pess_ok[1]).reshape(-1)
-    assert not np.asarray(ch.robust_ok[1]).any() and pess.any() and not pess.all()
-    q = np.array([3.0, 3.0], np.float32)
-    d = np.linalg.norm(pos - q, axis=-1)
-    np.testing.assert_allclose(S.nearest_subgoal(ch, 2, q), pos[np.argmin(np.where(pess, d, np.inf))])
-
-
 # ------------------------------------------------------------------------------------------------
 # the DP value table (Algorithm 1)
 
