@@ -18,7 +18,9 @@ A3) share it, trained once. A group whose seeds have all reached the schedule is
 with a checkpoint is continued with `train --resume` (also to a longer --episodes), one without
 a checkpoint (killed before its first) is moved aside and started again. A group made with other
 settings (--set, --preset) is left alone, with a message. `--time-budget` bounds each train call
-(it checkpoints and stops); the figures are drawn from whatever has been trained, and the README
+(it checkpoints and stops) and `--stop-after` the whole call, for jobs with a wall-clock limit
+(calls still waiting for a GPU get what is left; none starts with less than `--min-call`); the
+figures are drawn from whatever has been trained, and the README
 marks claims whose runs have not finished.
 
 Protocol (defaults, as in the paper): 5 seeds, 2,001 episodes of at most 1,000 steps (the
@@ -252,7 +254,21 @@ def config_mismatch(group_dir: str, exp: Exp, args) -> list:
 # ------------------------------------------------------------------------------------------------
 # Training
 # ------------------------------------------------------------------------------------------------
-def train_command(exp: Exp, group_dir: str, args, resume: bool) -> list:
+def call_budget(args, now: Optional[float] = None) -> Optional[float]:
+    """Seconds the next train call's loop may run: --time-budget, cut to what is left of
+    --stop-after (None: no limit)."""
+    budget = args.time_budget
+    deadline = getattr(args, "deadline", None)
+    if deadline is not None:
+        left = deadline - (time.time() if now is None else now)
+        budget = left if budget is None else min(budget, left)
+    return budget
+
+
+def train_command(exp: Exp, group_dir: str, args, resume: bool,
+                  budget: Optional[float] = None) -> list:
+    """The train call of one group; `budget`: its --time-budget (default: --time-budget)."""
+    budget = args.time_budget if budget is None else budget
     episodes, total = schedule(exp, args)
     cmd = [sys.executable, "-m", "dscpp_jax.cli", "train"]
     sets = list(args.set) + list(exp.sets)
@@ -269,8 +285,8 @@ def train_command(exp: Exp, group_dir: str, args, resume: bool) -> list:
         if s.split("=", 1)[0].strip().replace("-", "_") not in ("total_env_steps",
                                                                  "total_episodes"):
             cmd += ["--set", s]
-    if args.time_budget:
-        cmd += ["--time-budget", str(args.time_budget)]
+    if budget:
+        cmd += ["--time-budget", f"{budget:.0f}"]
     if not args.deterministic:
         cmd += ["--no-deterministic"]
     if args.compile_cache:
@@ -311,6 +327,16 @@ def train_one(exp: Exp, args, gpus, per_gpu: int = 1) -> str:
     env = dict(os.environ)
     env["PYTHONPATH"] = ROOT + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
     gpu = gpus.get() if gpus is not None else None
+    budget = call_budget(args)      # taken when the call can start (it may have waited for a GPU)
+    if budget is not None and getattr(args, "deadline", None) is not None \
+            and budget < args.min_call:
+        if gpu is not None:
+            gpus.put(gpu)
+        say(f"[reproduce] {name}: not started: {max(budget, 0):.0f}s left of --stop-after, "
+            f"under --min-call {args.min_call:.0f}s", flush=True)
+        return "not started (--stop-after)"
+    cmd = train_command(exp, gdir, args, resume, budget)
+    shown = " ".join(["python"] + cmd[1:])
     if gpu is not None:
         env["CUDA_VISIBLE_DEVICES"] = gpu
     share = per_gpu if gpu is not None else args.jobs
@@ -1082,6 +1108,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default=os.path.join("experiments", "results", "paper"))
     p.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
                    help="per train call: checkpoint and stop after this long (run again to go on)")
+    p.add_argument("--stop-after", type=float, default=None, metavar="SECONDS",
+                   help="for the whole call (a job with a wall-clock limit): no train loop runs "
+                        "past this many seconds after the call's start; each train call's final "
+                        "evaluation and the figures come after it, so leave a few minutes of "
+                        "the job's limit for them")
+    p.add_argument("--min-call", type=float, default=300, metavar="SECONDS",
+                   help="with --stop-after: start no train call with less time left than this "
+                        "(default 300)")
     p.add_argument("--jobs", type=int, default=1,
                    help="train calls at once (default 1); with --gpus they are spread over the "
                         "GPUs, and calls that share a GPU split its memory")
@@ -1135,6 +1169,9 @@ def main(argv: Optional[list] = None) -> int:
         parse_seeds(args.a1_seeds)
         if args.gpus is not None:
             gpu_slots(_csv_list(args.gpus, ()), args.jobs)
+        for flag, v in (("--time-budget", args.time_budget), ("--stop-after", args.stop_after)):
+            if v is not None and not v > 0:
+                raise ValueError(f"{flag} {v:g}: give a number of seconds > 0")
     except ValueError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
@@ -1150,6 +1187,7 @@ def main(argv: Optional[list] = None) -> int:
         args.runs_root = os.path.join(ROOT, args.runs_root)
     if not os.path.isabs(args.out):
         args.out = os.path.join(ROOT, args.out)
+    args.deadline = None if args.stop_after is None else time.time() + args.stop_after
     status = {} if args.report_only else train_all(args, figs)
     if args.dry_run:
         return 0

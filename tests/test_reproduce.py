@@ -313,3 +313,28 @@ def test_an_algorithm_keeps_its_colour_in_every_panel(tmp_path, monkeypatch):
                for ax in figs[0].axes]
     assert colours[0]["MB-DSC++"] == colours[1]["MB-DSC++"] != colours[0]["DSC"]
     plt.close(figs[0])
+
+
+def test_stop_after_bounds_the_whole_call(tmp_path, capsys, monkeypatch):
+    """--stop-after: each train call gets what is left of the call's time as its --time-budget
+    (never more than --time-budget), and none starts with less than --min-call left."""
+    clock = [1000.0]
+    calls = []
+
+    def fake_call(cmd, **kw):          # a train call that takes 700 s of the clock
+        calls.append(cmd)
+        clock[0] += 700
+        return 0
+
+    monkeypatch.setattr(reproduce.time, "time", lambda: clock[0])
+    monkeypatch.setattr(reproduce.subprocess, "call", fake_call)
+    runs, out = str(tmp_path / "runs"), str(tmp_path / "out")
+    args = ["--fig", "5", "--runs-root", runs, "--out", out, "--jobs", "1", "--gpus", "0",
+            "--stop-after", "1500", "--min-call", "300"]
+    assert reproduce.main(args + ["--time-budget", "900"]) == 0
+    budgets = [float(c[c.index("--time-budget") + 1]) for c in calls]
+    assert budgets == [900, 800]            # 1500 - 700 left for the second call
+    text = capsys.readouterr().out
+    assert text.count("not started: 100s left of --stop-after") == 2    # the last two groups
+    assert reproduce.main(args + ["--stop-after", "0"]) == 2
+    assert "--stop-after 0: give a number of seconds > 0" in capsys.readouterr().err
