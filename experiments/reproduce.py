@@ -254,13 +254,12 @@ def config_mismatch(group_dir: str, exp: Exp, args) -> list:
 # ------------------------------------------------------------------------------------------------
 # Training
 # ------------------------------------------------------------------------------------------------
-def call_budget(args, now: Optional[float] = None) -> Optional[float]:
+def call_budget(args) -> Optional[float]:
     """Seconds the next train call's loop may run: --time-budget, cut to what is left of
     --stop-after (None: no limit)."""
     budget = args.time_budget
-    deadline = getattr(args, "deadline", None)
-    if deadline is not None:
-        left = deadline - (time.time() if now is None else now)
+    if getattr(args, "deadline", None) is not None:
+        left = args.deadline - time.time()
         budget = left if budget is None else min(budget, left)
     return budget
 
@@ -286,7 +285,7 @@ def train_command(exp: Exp, group_dir: str, args, resume: bool,
                                                                  "total_episodes"):
             cmd += ["--set", s]
     if budget:
-        cmd += ["--time-budget", f"{budget:.0f}"]
+        cmd += ["--time-budget", f"{budget:g}"]
     if not args.deterministic:
         cmd += ["--no-deterministic"]
     if args.compile_cache:
@@ -328,8 +327,7 @@ def train_one(exp: Exp, args, gpus, per_gpu: int = 1) -> str:
     env["PYTHONPATH"] = ROOT + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
     gpu = gpus.get() if gpus is not None else None
     budget = call_budget(args)      # taken when the call can start (it may have waited for a GPU)
-    if budget is not None and getattr(args, "deadline", None) is not None \
-            and budget < args.min_call:
+    if getattr(args, "deadline", None) is not None and budget < args.min_call:
         if gpu is not None:
             gpus.put(gpu)
         say(f"[reproduce] {name}: not started: {max(budget, 0):.0f}s left of --stop-after, "
