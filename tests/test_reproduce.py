@@ -9,6 +9,7 @@ import os
 import shutil
 import sys
 
+import numpy as np
 import pytest
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -338,3 +339,16 @@ def test_stop_after_bounds_the_whole_call(tmp_path, capsys, monkeypatch):
     assert text.count("not started: 100s left of --stop-after") == 2    # the last two groups
     assert reproduce.main(args + ["--stop-after", "0"]) == 2
     assert "--stop-after 0: give a number of seconds > 0" in capsys.readouterr().err
+
+
+def test_an_ordering_needs_more_than_one_standard_error():
+    # the ant's medium maze: MF-DSC++ 0.16 ± 0.16 against DSC 0.14 ± 0.14 is a tie
+    mf, dsc = np.array([0, 0, 0, 0.8, 0]), np.array([0, 0.71, 0, 0, 0])
+    assert not reproduce.above(mf, dsc) and not reproduce.above(dsc, mf)
+    # U-maze: 0.91 ± 0.01 against 0.88 ± 0.01 is an ordering, one way only
+    mf = np.array([0.89, 0.94, 0.90, 0.89, 0.92])
+    dsc = np.array([0.89, 0.91, 0.89, 0.83, 0.86])
+    assert reproduce.above(mf, dsc) and not reproduce.above(dsc, mf)
+    # one seed each (no spread): the plain order of the values
+    assert reproduce.above(np.array([0.2]), np.array([0.1]))
+    assert not reproduce.above(np.array([0.1]), np.array([0.1]))
