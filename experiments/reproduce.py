@@ -127,11 +127,12 @@ def plan(args) -> dict:
         out["5"] = [Exp("u_maze", a, ep, seeds) for a in FIG5_ALGOS if a in algos]
     if "A3" in figs:
         out["A3"] = [Exp("u_maze", a, ep, seeds) for a in A3_ALGOS if a in algos]
-    # Appendix Figure 1 needs checkpoints from early in training: its groups keep them all
-    # (--a1-keep). With --a1-seeds equal to --seeds it shares Figure 4's groups, which then keep
-    # theirs too; otherwise it trains its own (by default one seed, as the figure shows one run).
+    # Appendix Figure 1 needs checkpoints from early in training: its groups save one every
+    # --a1-every iterations and keep them all (--a1-keep). With --a1-seeds equal to --seeds it
+    # shares Figure 4's groups, which then do the same; otherwise it trains its own (by default
+    # one seed, as the figure shows one run).
     from dscpp_jax.seed_group import parse_seeds
-    keep = (f"keep_checkpoints={args.a1_keep}",)
+    keep = (f"keep_checkpoints={args.a1_keep}", f"checkpoint_every={args.a1_every}")
     share = parse_seeds(args.a1_seeds) == parse_seeds(seeds)
     fig4 = [Exp("ant_reacher", args.fig4_algo, args.fig4_episodes, seeds, subgoal=s,
                 sets=keep if share else ()) for s in ("robust", "dp")]
@@ -1113,6 +1114,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--a1-seeds", default="0", help="seeds of appendix Figure 1's runs")
     p.add_argument("--a1-keep", type=int, default=1000,
                    help="checkpoints appendix Figure 1's runs keep (default: all)")
+    p.add_argument("--a1-every", type=int, default=5,
+                   help="iterations between the checkpoints of appendix Figure 1's runs (default "
+                        "5: the goal option's regions early in training; the preset's 25 shows "
+                        "the first one after about 240 episodes on the ant)")
     p.add_argument("--a1-panels", type=int, default=4, help="checkpoints shown per algorithm")
     p.add_argument("--a1-resolution", type=int, default=80)
     p.add_argument("--runs-root", default=os.path.join("runs", "paper"))
@@ -1180,6 +1185,9 @@ def main(argv: Optional[list] = None) -> int:
         parse_seeds(args.a1_seeds)
         if args.gpus is not None:
             gpu_slots(_csv_list(args.gpus, ()), args.jobs)
+        for flag, v in (("--a1-every", args.a1_every), ("--a1-keep", args.a1_keep)):
+            if v < 1:
+                raise ValueError(f"{flag} {v}: give a number of iterations >= 1")
         for flag, v in (("--time-budget", args.time_budget), ("--stop-after", args.stop_after)):
             if v is not None and not v > 0:
                 raise ValueError(f"{flag} {v:g}: give a number of seconds > 0")

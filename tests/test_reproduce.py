@@ -29,7 +29,7 @@ def _args(runs, out, *extra):
          "--env-map", "ant_reacher=point_ant_reacher", "--mazes", "u_maze",
          "--algos", "dsc,mf_dscpp", "--fig4-algo", "mf_dscpp", "--seeds", "0-1",
          "--a1-seeds", "0-1", "--episodes", "8", "--fig4-episodes", "8", "--jobs", "2",
-         "--a1-resolution", "24", "--runs-root", runs, "--out", out]
+         "--a1-resolution", "24", "--a1-every", "3", "--runs-root", runs, "--out", out]
     for s in TINY:
         a += ["--set", s]
     return a + list(extra)
@@ -83,6 +83,8 @@ def test_reproduce_trains_draws_reports_then_skips(tmp_path, capsys, monkeypatch
     a1 = _rows(os.path.join(out, "figA1.csv"))
     assert {r["algo"] for r in a1} == {"dsc", "mf_dscpp"}
     assert len({r["checkpoint"] for r in a1 if r["algo"] == "dsc"}) >= 3   # kept over training
+    a1_cfg = json.load(open(os.path.join(runs, "point_ant_reacher-dsc-g0-1", "group.json")))
+    assert a1_cfg["config"]["checkpoint_every"] == 3   # --a1-every, not --set's 2
     a2 = _rows(os.path.join(out, "figA2.csv"))
     assert {(r["algo"], r["critic"]) for r in a2} == {("mf_dscpp", "shared"),
                                                       ("mf_dscpp", "per_option")}
