@@ -379,6 +379,21 @@ def visible_gpus() -> list:
     return [str(i) for i, _ in enumerate(l for l in out.splitlines() if l.startswith("GPU "))]
 
 
+def check_gpus_allowed(gpus) -> None:
+    """Where this process has CUDA_VISIBLE_DEVICES (a scheduler's share of the host), --gpus must
+    name GPUs from it: each train call's CUDA_VISIBLE_DEVICES is set to its --gpus entry, so an
+    entry outside the list would put the call on a GPU the job was not given."""
+    env = os.environ.get("CUDA_VISIBLE_DEVICES")
+    if env is None:
+        return
+    allowed = visible_gpus()
+    bad = [g for g in gpus if g not in allowed]
+    if bad:
+        raise ValueError(f"--gpus {','.join(gpus)}: {','.join(bad)} not in "
+                         f"CUDA_VISIBLE_DEVICES={env}; name GPUs from that list "
+                         f"(e.g. --gpus {','.join(allowed) or '<none visible>'})")
+
+
 def gpu_slots(gpus, jobs: int) -> list:
     """The GPU of each of `jobs` concurrent train calls, round robin over `gpus`: several calls
     share a GPU when there are more calls than GPUs (one group's physics is latency bound)."""
@@ -1137,7 +1152,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "GPUs, and calls that share a GPU split its memory")
     p.add_argument("--gpus", default=None, metavar="LIST",
                    help="e.g. 0,1,2,3: each train call gets one of these GPUs "
-                        "(CUDA_VISIBLE_DEVICES); a group's seeds then share that GPU")
+                        "(CUDA_VISIBLE_DEVICES); a group's seeds then share that GPU. Where "
+                        "CUDA_VISIBLE_DEVICES is set, name GPUs from it")
     p.add_argument("--report-only", action="store_true",
                    help="train nothing: figures, CSVs and README from the runs that exist")
     p.add_argument("--dry-run", action="store_true", help="print the train commands only")
@@ -1185,6 +1201,7 @@ def main(argv: Optional[list] = None) -> int:
         parse_seeds(args.a1_seeds)
         if args.gpus is not None:
             gpu_slots(_csv_list(args.gpus, ()), args.jobs)
+            check_gpus_allowed(_csv_list(args.gpus, ()))
         for flag, v in (("--a1-every", args.a1_every), ("--a1-keep", args.a1_keep)):
             if v < 1:
                 raise ValueError(f"{flag} {v}: give a number of iterations >= 1")
@@ -1211,6 +1228,9 @@ def main(argv: Optional[list] = None) -> int:
     if args.dry_run:
         return 0
     # figures: JAX (Figure 4, A1) only now, after every train call has given the devices back
+    # and without taking 75 % of every visible GPU up front: the evaluations are small, and train
+    # calls of other jobs on the host may be using those GPUs
+    os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
     from dscpp_jax.cli import use_compile_cache, use_deterministic_ops
     use_deterministic_ops(args.deterministic)
     use_compile_cache(args.compile_cache)

@@ -185,6 +185,11 @@ def test_train_calls_spread_over_gpus(tmp_path, capsys, monkeypatch):
     assert reproduce.main(["--fig", "5", "--runs-root", runs, "--out", out, "--dry-run"]) == 0
     assert "2 GPUs: each train call takes one of them (--gpus 2,3 --jobs 2" in \
         capsys.readouterr().out
+    # a job given GPUs 2 and 3 cannot send a train call to GPU 0
+    assert reproduce.main(["--fig", "5", "--gpus", "0", "--runs-root", runs, "--dry-run"]) == 2
+    assert "--gpus 0: 0 not in CUDA_VISIBLE_DEVICES=2,3" in capsys.readouterr().err
+    assert reproduce.main(["--fig", "5", "--gpus", "3", "--runs-root", runs, "--dry-run"]) == 0
+    capsys.readouterr()
     monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "-1")
     assert reproduce.visible_gpus() == []
     assert reproduce.main(["--fig", "5", "--gpus", ",", "--dry-run"]) == 2
@@ -196,7 +201,7 @@ def test_train_calls_spread_over_gpus(tmp_path, capsys, monkeypatch):
         reproduce.gpu_slots([], 2)
 
 
-def test_bad_figure_and_a2_only(tmp_path, capsys):
+def test_bad_figure_and_a2_only(tmp_path, capsys, monkeypatch):
     assert reproduce.main(["--fig", "7"]) == 2
     assert "unknown figure" in capsys.readouterr().err
     out, runs = str(tmp_path / "out"), str(tmp_path / "runs")
@@ -210,8 +215,12 @@ def test_bad_figure_and_a2_only(tmp_path, capsys):
     per, = [l for l in lines if "u_maze-mf_dscpp-g0-4-optcritic: would start" in l]
     assert "shared_critic" not in shared and "--set shared_critic=false" in per
     assert "--env u_maze --algo mf_dscpp" in per
+    monkeypatch.setenv("XLA_PYTHON_CLIENT_PREALLOCATE", "unset")   # restored after the test
+    monkeypatch.delenv("XLA_PYTHON_CLIENT_PREALLOCATE")
     assert reproduce.main(["--fig", "A2", "--runs-root", runs, "--out", out,
                            "--report-only"]) == 0
+    # the figures' own JAX work does not take most of every visible GPU up front
+    assert os.environ["XLA_PYTHON_CLIENT_PREALLOCATE"] == "false"
     readme = open(os.path.join(out, "README.md")).read()
     assert readme.count("| not run") == readme.count("\n| ") - 1   # every claim: not run
     # a hand-written "## Notes" section survives the next call
