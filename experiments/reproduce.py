@@ -1189,11 +1189,50 @@ def export_lean(runs_root: str, dest: str) -> int:
     return n
 
 
+# the mazes Figure 6 may name (the paper's three and D4RL's large maze) and every env --env-map
+# may name in their place (Ant-Reacher for Figure 4 and A1)
+FIG6_MAZES = ("u_maze", "medium", "large", "four_rooms")
+PAPER_ENVS = FIG6_MAZES + ("ant_reacher",)
+
+
+def check_args(args) -> None:
+    """Every argument a train call or figure would trip over later, as one clear ValueError now."""
+    import envs
+    for flag, text, known in (("--algos", args.algos, FIG6_ALGOS + ("dual",)),
+                              ("--mazes", args.mazes, FIG6_MAZES)):
+        if text is None:
+            continue
+        items = _csv_list(text, ())
+        bad = [x for x in items if x not in known]
+        if bad or not items:
+            what = f"unknown {', '.join(map(repr, bad))}" if bad else "names nothing"
+            raise ValueError(f"{flag} {text!r}: {what}; choose from {', '.join(known)}")
+    if args.fig4_algo not in ("dsc", "dual", "mf_dscpp", "mb_dscpp"):
+        raise ValueError(f"--fig4-algo {args.fig4_algo!r}: Figure 4 compares subgoals of a skill "
+                         "chain; choose from dsc, dual, mf_dscpp, mb_dscpp")
+    for kv in args.env_map_list:
+        k, sep, v = kv.partition("=")
+        if not sep or k.strip() not in PAPER_ENVS or v.strip() not in envs.ENV_NAMES:
+            raise ValueError(f"--env-map {kv!r}: write PAPER=ENV with PAPER one of "
+                             f"{', '.join(PAPER_ENVS)} and ENV one of {', '.join(envs.ENV_NAMES)} "
+                             "(e.g. --env-map u_maze=point_u_maze)")
+    for flag, v in (("--episodes", args.episodes), ("--fig4-episodes", args.fig4_episodes),
+                    ("--long-td3-episodes", args.long_td3_episodes), ("--jobs", args.jobs),
+                    ("--a1-panels", args.a1_panels), ("--a1-resolution", args.a1_resolution)):
+        if v < 1:
+            raise ValueError(f"{flag} {v}: give a whole number >= 1")
+    if args.total_steps is not None and args.total_steps < 1:
+        raise ValueError(f"--total-steps {args.total_steps}: give a whole number >= 1")
+    from dscpp_jax.cli import _overrides
+    _overrides(args.set)   # unknown fields and values of the wrong type, as `train --set` says
+
+
 def main(argv: Optional[list] = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(argv)
     args.argv = argv
     try:
+        check_args(args)
         args.env_map = dict(kv.split("=", 1) for kv in args.env_map_list)
         figs = plan(args)
         from dscpp_jax.seed_group import parse_seeds

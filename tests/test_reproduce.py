@@ -201,6 +201,28 @@ def test_train_calls_spread_over_gpus(tmp_path, capsys, monkeypatch):
         reproduce.gpu_slots([], 2)
 
 
+@pytest.mark.parametrize("argv, says", [
+    (["--algos", "foo"], "--algos 'foo': unknown 'foo'; choose from"),
+    (["--algos", ","], "--algos ',': names nothing"),
+    (["--mazes", "bogus"], "--mazes 'bogus': unknown 'bogus'; choose from u_maze, medium, large"),
+    (["--episodes", "0"], "--episodes 0: give a whole number >= 1"),
+    (["--fig4-episodes", "-5"], "--fig4-episodes -5"),
+    (["--jobs", "0"], "--jobs 0"),
+    (["--env-map", "u_maze"], "--env-map 'u_maze': write PAPER=ENV"),
+    (["--env-map", "u_maze=pointy"], "--env-map 'u_maze=pointy': write PAPER=ENV"),
+    (["--set", "foo=1"], "unknown config field 'foo'"),
+    (["--set", "num_envs=abc"], "num_envs is an integer"),
+    (["--fig4-algo", "td3_her"], "--fig4-algo 'td3_her'"),
+    (["--a1-every", "0"], "--a1-every 0"),
+])
+def test_bad_arguments_stop_before_anything_runs(tmp_path, capsys, argv, says):
+    runs = str(tmp_path / "runs")
+    assert reproduce.main(["--fig", "all", "--runs-root", runs, "--dry-run"] + argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and says in err and "Traceback" not in err
+    assert not os.path.exists(runs)
+
+
 def test_bad_figure_and_a2_only(tmp_path, capsys, monkeypatch):
     assert reproduce.main(["--fig", "7"]) == 2
     assert "unknown figure" in capsys.readouterr().err
