@@ -730,7 +730,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--run-dir", default=None, help="default: runs/<env>-<algo>-s<seed>-<time>")
     t.add_argument("--resume", default=None, metavar="RUN_DIR",
                    help="continue a run from its last checkpoint")
-    t.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
+    t.add_argument("--time-budget", type=_seconds, default=None, metavar="SECONDS",
                    help="checkpoint and stop after this much wall-clock")
     t.add_argument("--no-progress", action="store_true",
                    help="no progress bar; print one line per evaluation instead")
@@ -796,6 +796,18 @@ def build_parser() -> argparse.ArgumentParser:
                          "trajectory plot (seconds instead of minutes on the ant)")
     pl.set_defaults(func=cmd_plot)
     return p
+
+
+def _seconds(text: str) -> float:
+    """argparse type: a number of seconds > 0 (a budget of 0 or less would stop after one
+    iteration without saying why)."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
+    if not v > 0:
+        raise argparse.ArgumentTypeError(f"{text}: give a number of seconds > 0")
+    return v
 
 
 def main(argv: Optional[list[str]] = None) -> int:

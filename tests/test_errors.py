@@ -155,6 +155,12 @@ def test_set_names_the_field_its_type_and_an_example(capsys):
     assert parse_value("gestation", "1e3") == 1000 and parse_value("td3_lr", "3e-4") == 3e-4
     assert main(["eval", "--run", "r", "--starts", "1,2;3"]) == 2
     assert "--starts expects x,y pairs" in _one_error_line(capsys.readouterr().err)
+    # a time budget of 0 or less would stop after one iteration without a word
+    for bad, says in (("-1", "-1: give a number of seconds > 0"), ("0", "0: give a number"),
+                      ("soon", "'soon' is not a number of seconds")):
+        with pytest.raises(SystemExit) as e:
+            main(["train", "--env", "point_u_maze", "--time-budget", bad])
+        assert e.value.code == 2 and says in capsys.readouterr().err
 
 
 # ------------------------------------------------------------------------------------------------
