@@ -91,6 +91,11 @@ class CheckpointError(ValueError):
     """A checkpoint cannot be written or restored; the message says what to do."""
 
 
+NONE_SAVED = ("the run saved none yet, or this is a copy without checkpoints (results "
+              "directories keep metrics.csv, config.json and eval.json only); train (or resume) "
+              "it first, or point at the run directory that training wrote")
+
+
 class NoCheckpointError(CheckpointError, FileNotFoundError):
     """The run directory has no checkpoint (yet)."""
 
@@ -193,8 +198,7 @@ class Checkpointer:
                                         f"; saved iterations: {steps}")
             return self._restore(like, int(step))
         if not steps:
-            raise NoCheckpointError(f"no checkpoint found under {self.directory}: the run saved "
-                                    f"none yet; train (or resume) it first")
+            raise NoCheckpointError(f"no checkpoint found under {self.directory}: {NONE_SAVED}")
         failures = []
         for s in reversed(steps):
             try:
@@ -242,7 +246,7 @@ def restore_state(run_dir: str, like: Any, step: int | None = None,
                   set_aside_broken: bool = False) -> Any:
     if not os.path.isdir(os.path.join(run_dir, CKPT_DIR)):
         raise NoCheckpointError(f"no checkpoint found under {os.path.join(run_dir, CKPT_DIR)}: "
-                                f"the run saved none yet; train (or resume) it first")
+                                f"{NONE_SAVED}")
     ck = Checkpointer(run_dir)
     try:
         return ck.restore(like, step, set_aside_broken=set_aside_broken)

@@ -263,6 +263,14 @@ class Config:
         need(self.max_options >= 3, f"max_options={self.max_options} must be >= 3 (global, goal "
              "and at least one chain link)")
         need(self.warmup_episodes >= 0, "warmup_episodes must be >= 0")
+        for name in ("eval_every", "checkpoint_every"):
+            need(int(getattr(self, name)) >= 0,
+                 f"{name}={getattr(self, name)} must be >= 0 (train_step calls between them; "
+                 f"0: {'never' if name == 'eval_every' else 'only at exit'})")
+        need(self.log_every >= 1, f"log_every={self.log_every} must be >= 1")
+        need(self.keep_checkpoints >= 1, f"keep_checkpoints={self.keep_checkpoints} must be >= 1")
+        need(self.seed >= 0, f"seed={self.seed} must be >= 0 (seeds are non-negative integers, "
+             "as --seeds takes them)")
         need(self.total_episodes >= 0, "total_episodes must be >= 0 (0: no episode limit)")
         need(self.goal_tolerance > 0, "goal_tolerance must be > 0")
         need(0.0 < self.discount <= 1.0, "discount must be in (0, 1]")

@@ -499,7 +499,8 @@ class GroupCheckpointer:
         over `mesh` (default: `like`'s mesh). The mesh may differ from the one that saved."""
         step = self.latest_step() if step is None else step
         if step is None:
-            raise FileNotFoundError(f"no checkpoint found under {self.directory}")
+            from dscpp_jax.checkpoint import NONE_SAVED, NoCheckpointError
+            raise NoCheckpointError(f"no checkpoint found under {self.directory}: {NONE_SAVED}")
         n = group_size(like)
         mesh = (mesh_of(like) if hasattr(like.counters.iteration, "sharding") else seed_mesh()) \
             if mesh is None else mesh

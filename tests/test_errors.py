@@ -100,7 +100,15 @@ def test_missing_and_foreign_run_directories_get_one_line_errors(tmp_path, capsy
     from dscpp_jax.run_logging import write_config
     write_config(str(foreign), preset("fast", "point_u_maze", "td3_her").to_dict())
     assert main(["eval", "--run", str(foreign)]) == 2
-    assert "no checkpoint" in _one_error_line(capsys.readouterr().err)
+    line = _one_error_line(capsys.readouterr().err)
+    assert "no checkpoint" in line and "check the disk" not in line
+    # a seed of a committed seed group (results keep no checkpoints): says so, not "the disk"
+    lean = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "experiments",
+                        "results", "paper_point_twins", "runs", "point_four_rooms-dsc-g0-4")
+    shutil.copytree(lean, tmp_path / "lean")
+    assert main(["eval", "--run", str(tmp_path / "lean" / "s0"), "--episodes", "1"]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert "copy without checkpoints" in line and "check the disk" not in line
 
 
 def test_config_from_another_version(tmp_path, monkeypatch, capsys):
@@ -155,6 +163,13 @@ def test_set_names_the_field_its_type_and_an_example(capsys):
     assert parse_value("gestation", "1e3") == 1000 and parse_value("td3_lr", "3e-4") == 3e-4
     assert main(["eval", "--run", "r", "--starts", "1,2;3"]) == 2
     assert "--starts expects x,y pairs" in _one_error_line(capsys.readouterr().err)
+    # negative cadences and seeds were taken as they came
+    for argv, says in ((["--eval-every", "-2"], "eval_every=-2 must be >= 0"),
+                       (["--checkpoint-every", "-1"], "checkpoint_every=-1 must be >= 0"),
+                       (["--seed", "-1"], "seed=-1 must be >= 0"),
+                       (["--set", "keep_checkpoints=0"], "keep_checkpoints=0 must be >= 1")):
+        assert main(["train", "--env", "point_u_maze"] + argv) == 2
+        assert says in _one_error_line(capsys.readouterr().err)
     # a time budget of 0 or less would stop after one iteration without a word
     for bad, says in (("-1", "-1: give a number of seconds > 0"), ("0", "0: give a number"),
                       ("soon", "'soon' is not a number of seconds")):
