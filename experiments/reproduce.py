@@ -560,7 +560,7 @@ def curve_figure(data: Data, panels: list, column: str, ylabel: str, path: str, 
 
 
 MAZE_TITLES = {"u_maze": "U-maze", "medium": "large maze (medium)", "four_rooms": "four rooms",
-               "ant_reacher": "Ant-Reacher"}
+               "large": "D4RL large maze (beyond the paper)", "ant_reacher": "Ant-Reacher"}
 
 
 def _maze_title(maze: str, env_map: dict) -> str:
