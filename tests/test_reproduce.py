@@ -137,6 +137,8 @@ def test_reproduce_trains_draws_reports_then_skips(tmp_path, capsys, monkeypatch
     lean_out = str(tmp_path / "lean_out")
     assert reproduce.main(_args(lean, lean_out, "--report-only")) == 0
     capsys.readouterr()
+    # a page drawn without training says so (its command would train nothing)
+    assert "Drawn from the runs as they are" in open(os.path.join(lean_out, "README.md")).read()
     for fig in ("fig4", "figA1"):
         assert os.path.getsize(os.path.join(lean_out, fig + ".png")) > 1000, fig
         assert _rows(os.path.join(lean_out, fig + ".csv")) == _rows(os.path.join(out, fig + ".csv"))
