@@ -829,10 +829,11 @@ def _fmt(x: np.ndarray) -> str:
         return "-"
     if x.size == 1:
         return f"{x.mean():.3g}"
-    return f"{x.mean():.3g} ± {x.std(ddof=1) / np.sqrt(x.size):.2g}"
+    return f"{x.mean():.3g} ± {_se(x):.2g}"
 
 
 def _se(x: np.ndarray) -> float:
+    """Standard error of the mean over seeds (0 for one seed)."""
     return float(x.std(ddof=1) / np.sqrt(x.size)) if x.size > 1 else 0.0
 
 
