@@ -788,7 +788,10 @@ def build_parser() -> argparse.ArgumentParser:
     v.set_defaults(func=cmd_video)
 
     pl = sub.add_parser("plot", help="learning curves (one or many runs) + trajectory/classifier plots")
-    pl.add_argument("runs", nargs="+")
+    pl.add_argument("runs", nargs="+",
+                    help="run directories; a seed group's directory stands for its seeds; "
+                         "LABEL=DIR names the curve DIR belongs to. Runs without a checkpoint "
+                         "(results copies) get their curves only")
     pl.add_argument("--out", default=None)
     pl.add_argument("--curves-only", action="store_true")
     pl.add_argument("--regions-only", action="store_true",

@@ -290,21 +290,48 @@ def plot_curves(run_dirs: Sequence[str], path: str, group: bool = True) -> str:
     return path
 
 
+def expand_groups(entries: Sequence[str]) -> list[str]:
+    """Each seed-group directory among `entries` ("LABEL=DIR" too) replaced by its seeds'
+    directories, in the group's seed order; run directories stay as they are."""
+    from dscpp_jax import group_train
+    out = []
+    for e in entries:
+        label, run = _split_label(e)
+        if os.path.isdir(run) and group_train.is_group_dir(run):
+            seeds = group_train.read_group(run)["seeds"]
+            dirs = [group_train.seed_dir(run, s) for s in seeds]
+            out += [f"{label}={d}" if label is not None else d for d in dirs]
+        else:
+            out.append(e)
+    return out
+
+
 def plot_runs(run_dirs: Sequence[str], out_dir: str, with_state: bool = True,
               trajectory: bool = True) -> list[str]:
-    """All plots for the given runs: curves; with ``with_state`` also each run's classifiers
-    and (``trajectory``: after evaluation episodes from its checkpoint) trajectories."""
+    """All plots for the given runs (a seed group's directory stands for its seeds): curves;
+    with ``with_state`` also each run's classifiers and (``trajectory``: after evaluation
+    episodes from its checkpoint) trajectories. A run without a checkpoint (a results copy)
+    gets its curves and a line on stderr saying why nothing else."""
+    run_dirs = expand_groups(run_dirs)
     os.makedirs(out_dir, exist_ok=True)
     paths = [plot_curves(run_dirs, os.path.join(out_dir, "curves.png"))]
     if with_state:
+        import sys
+
         import jax
 
+        from dscpp_jax.checkpoint import NoCheckpointError
         from dscpp_jax.cli import load_run
         from dscpp_jax.evaluate import evaluate
         for r in run_dirs:
             r = _split_label(r)[1]
             tag = "" if len(run_dirs) == 1 else os.path.basename(os.path.normpath(r)) + "_"
-            cfg, state = load_run(r)
+            try:
+                cfg, state = load_run(r)
+            except NoCheckpointError:
+                print(f"{r}: no checkpoint, so only its curves (the options' regions and "
+                      f"trajectories come from a checkpoint)", file=sys.stderr)
+                continue
             if trajectory:
                 _, res = evaluate(state, jax.random.PRNGKey(0), max(4, cfg.eval_episodes))
                 it = int(state.counters.iteration)

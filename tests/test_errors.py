@@ -178,6 +178,22 @@ def test_set_names_the_field_its_type_and_an_example(capsys):
         assert e.value.code == 2 and says in capsys.readouterr().err
 
 
+def test_plot_of_a_results_group_draws_its_seeds_curves(tmp_path, capsys):
+    # a committed seed group (no checkpoints): the group directory stands for its seeds, their
+    # curves are drawn, and each seed says in one line why there is nothing more
+    lean = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "experiments",
+                        "results", "paper_point_twins", "runs", "point_four_rooms-dsc-g0-4")
+    group = str(tmp_path / "group")
+    shutil.copytree(lean, group)
+    out = str(tmp_path / "plots")
+    assert main(["plot", group, "--out", out]) == 0
+    captured = capsys.readouterr()
+    assert os.path.getsize(os.path.join(out, "curves.png")) > 1000
+    assert sorted(os.listdir(out)) == ["curves.png"]
+    notes = [l for l in captured.err.splitlines() if "no checkpoint, so only its curves" in l]
+    assert [l.split(":")[0] for l in notes] == [os.path.join(group, f"s{s}") for s in range(5)]
+
+
 # ------------------------------------------------------------------------------------------------
 # damaged checkpoints, a full disk, a read-only directory
 # ------------------------------------------------------------------------------------------------
