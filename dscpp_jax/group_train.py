@@ -44,6 +44,11 @@ def read_group(group_dir: str) -> dict:
         return json.load(f)
 
 
+def seed_dirs(group_dir: str) -> list[str]:
+    """The seed directories of a group, in its seed order (from its group.json)."""
+    return [seed_dir(group_dir, s) for s in read_group(group_dir)["seeds"]]
+
+
 def group_of(run_dir: str) -> Optional[tuple]:
     """(group_dir, index in the group) when `run_dir` is a seed directory of a group, else None."""
     cfg_path = os.path.join(run_dir, "config.json")

@@ -4,6 +4,7 @@ metrics.csv for one or many runs (mean +- standard error; paper Figure 6, append
 from __future__ import annotations
 
 import os
+import sys
 from typing import Optional, Sequence
 
 import numpy as np
@@ -298,9 +299,8 @@ def expand_groups(entries: Sequence[str]) -> list[str]:
     for e in entries:
         label, run = _split_label(e)
         if os.path.isdir(run) and group_train.is_group_dir(run):
-            seeds = group_train.read_group(run)["seeds"]
-            dirs = [group_train.seed_dir(run, s) for s in seeds]
-            out += [f"{label}={d}" if label is not None else d for d in dirs]
+            out += [f"{label}={d}" if label is not None else d
+                    for d in group_train.seed_dirs(run)]
         else:
             out.append(e)
     return out
@@ -316,8 +316,6 @@ def plot_runs(run_dirs: Sequence[str], out_dir: str, with_state: bool = True,
     os.makedirs(out_dir, exist_ok=True)
     paths = [plot_curves(run_dirs, os.path.join(out_dir, "curves.png"))]
     if with_state:
-        import sys
-
         import jax
 
         from dscpp_jax.checkpoint import NoCheckpointError

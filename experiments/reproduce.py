@@ -178,12 +178,11 @@ def checkpoint_steps(group_dir: str) -> list:
 
 def seed_dirs(group_dir: str) -> list:
     """The seed directories of a group that have logged at least one iteration."""
+    from dscpp_jax.group_train import seed_dirs as all_seed_dirs
     try:
-        with open(os.path.join(group_dir, "group.json")) as f:
-            seeds = json.load(f)["seeds"]
+        dirs = all_seed_dirs(group_dir)
     except (OSError, ValueError, KeyError):
         return []
-    dirs = [os.path.join(group_dir, f"s{s}") for s in seeds]
     return [d for d in dirs if os.path.isfile(os.path.join(d, "metrics.csv"))]
 
 
@@ -1212,9 +1211,10 @@ def check_args(args) -> None:
         if bad or not items:
             what = f"unknown {', '.join(map(repr, bad))}" if bad else "names nothing"
             raise ValueError(f"{flag} {text!r}: {what}; choose from {', '.join(known)}")
-    if args.fig4_algo not in ("dsc", "dual", "mf_dscpp", "mb_dscpp"):
+    from dscpp_jax.config import HIERARCHICAL_ALGOS
+    if args.fig4_algo not in HIERARCHICAL_ALGOS:
         raise ValueError(f"--fig4-algo {args.fig4_algo!r}: Figure 4 compares subgoals of a skill "
-                         "chain; choose from dsc, dual, mf_dscpp, mb_dscpp")
+                         f"chain; choose from {', '.join(HIERARCHICAL_ALGOS)}")
     for kv in args.env_map_list:
         k, sep, v = kv.partition("=")
         if not sep or k.strip() not in PAPER_ENVS or v.strip() not in envs.ENV_NAMES:
