@@ -823,6 +823,25 @@ def figA1(data: Data, out: str) -> Optional[str]:
 # ------------------------------------------------------------------------------------------------
 # Claims
 # ------------------------------------------------------------------------------------------------
+def a1_verdict(areas: dict, ours: str) -> tuple:
+    """Appendix Figure 1's claim from the goal option's region areas, {algo: [(episodes,
+    optimistic area, pessimistic area), ...]}: (text, holds). Each algorithm's areas count from
+    its first checkpoint where the goal option had been fitted (those of the warm-up have no
+    region at all). Holds when DSC's region ends smaller than the pessimistic region of `ours`,
+    whose optimistic region does not grow and whose pessimistic region does not shrink."""
+    txt, first = [], {}
+    for a, v in areas.items():
+        v = sorted(v)
+        first[a] = next((x for x in v if x[1] > 0 or x[2] > 0), v[0])
+        txt.append(f"{NAMES[a]}: optimistic {first[a][1]:.3g} -> {v[-1][1]:.3g}, pessimistic "
+                   f"{first[a][2]:.3g} -> {v[-1][2]:.3g} (episodes {first[a][0]} -> {v[-1][0]})")
+    ok = False
+    if "dsc" in areas and ours in areas and ours != "dsc":
+        d, o, f = max(areas["dsc"]), max(areas[ours]), first[ours]
+        ok = d[2] < o[2] and o[1] <= f[1] and o[2] >= f[2]
+    return "; ".join(txt), ok
+
+
 def _fmt(x: np.ndarray) -> str:
     if x.size == 0:
         return "-"
@@ -974,19 +993,8 @@ def claims(data: Data, args, figures: dict) -> list:
         out.append(("A1", claim, "-", "not run"))
     else:
         ea = data.figs["A1"]
-        ours = ea[-1].algo
-        txt = []
-        for a, v in areas.items():
-            v = sorted(v)
-            txt.append(f"{NAMES[a]}: optimistic {v[0][1]:.3g} -> {v[-1][1]:.3g}, pessimistic "
-                       f"{v[0][2]:.3g} -> {v[-1][2]:.3g} (episodes {v[0][0]} -> {v[-1][0]})")
-        measured = "; ".join(txt) + f" (area, {ea[0].run_env(args.env_map)}, one seed)"
-        ok = False
-        if "dsc" in areas and ours in areas and ours != "dsc":
-            d, o = sorted(areas["dsc"]), sorted(areas[ours])
-            # from the first checkpoint where the goal option had been fitted
-            first = next((v for v in o if v[1] > 0 or v[2] > 0), o[0])
-            ok = d[-1][2] < o[-1][2] and o[-1][1] <= first[1] and o[-1][2] >= first[2]
+        text, ok = a1_verdict(areas, ea[-1].algo)
+        measured = text + f" (area, {ea[0].run_env(args.env_map)}, one seed)"
         out.append(("A1", claim, measured, _status(ok, len(areas) == 2 and all(
             data.finished(e) for e in ea))))
     # --- Appendix Figure 2 -----------------------------------------------------------------

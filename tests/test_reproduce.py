@@ -387,3 +387,17 @@ def test_an_ordering_needs_more_than_one_standard_error():
     # one seed each (no spread): the plain order of the values
     assert reproduce.above(np.array([0.2]), np.array([0.1]))
     assert not reproduce.above(np.array([0.1]), np.array([0.1]))
+
+
+def test_appendix_figure_1_counts_from_the_first_fitted_checkpoint():
+    # the ant's goal option (seed 0): a checkpoint of the warm-up (no region yet), then fitted
+    dsc = [(137, 12.3, 12.3), (482, 23.0, 23.0), (1003, 12.1, 12.1)]
+    ours = [(0, 0.0, 0.0), (223, 137.5, 17.3), (712, 50.3, 19.3), (1005, 52.9, 21.1)]
+    text, ok = reproduce.a1_verdict({"dsc": dsc, "mb_dscpp": ours}, "mb_dscpp")
+    assert ok and "optimistic 138 -> 52.9, pessimistic 17.3 -> 21.1 (episodes 223 -> 1005)" in text
+    # the earlier sample: the pessimistic region shrank from its first fitted checkpoint
+    ours = [(237, 140.0, 23.5), (1009, 43.1, 20.9)]
+    assert not reproduce.a1_verdict({"dsc": dsc, "mb_dscpp": ours}, "mb_dscpp")[1]
+    # DSC's region as large as ours at the end: not reproduced either
+    ours = [(223, 137.5, 10.0), (1005, 52.9, 12.1)]
+    assert not reproduce.a1_verdict({"dsc": dsc, "mb_dscpp": ours}, "mb_dscpp")[1]
