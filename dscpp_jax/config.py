@@ -73,6 +73,20 @@ class Config:
     diverse_starts: bool = True        # training episodes after warm-up start anywhere free
     task_start_prob: float = 0.0       # with diverse starts: the share of training episodes after
                                        # warm-up that start at the task start instead
+    # the chain's frontier (beyond the paper; dscpp_jax.frontier, docs/training.md): uncovered free
+    # space within frontier_radius of an option's examples, estimated from frontier_candidates
+    # diverse-start draws; a row's frontier is open with at least frontier_min_open of them
+    frontier_start_prob: float = 0.0   # with diverse starts: the share of training episodes after
+                                       # warm-up that start on the frontier of the option that the
+                                       # link in gestation targets
+    frontier_parent: bool = False      # a new option targets the newest mature option with an
+                                       # open frontier; a link in gestation whose target's frontier
+                                       # closed (a filled dead end) is re-targeted there
+    frontier_radius: float = 5.0
+    frontier_inner_radius: float = 0.0  # frontier starts keep at least this far from the target's
+                                       # examples (longer links; 0: anywhere on the frontier)
+    frontier_candidates: int = 512
+    frontier_min_open: int = 4
     eval_prefer_pessimistic: bool = True  # evaluation's policy over options tries pessimistic
                                        # regions first (False: the paper's walk, as in training)
 
@@ -323,6 +337,23 @@ class Config:
         need(0.0 <= float(self.task_start_prob) <= 1.0,
              f"task_start_prob={self.task_start_prob} must be in [0, 1] (the share of training "
              f"episodes that start at the task start; 0: all diverse starts)")
+        need(0.0 <= float(self.frontier_start_prob) <= 1.0
+             and float(self.task_start_prob) + float(self.frontier_start_prob) <= 1.0,
+             f"frontier_start_prob={self.frontier_start_prob} must be in [0, 1] and, with "
+             f"task_start_prob={self.task_start_prob}, sum to at most 1 (the shares of training "
+             f"episodes that start at the task start and on the chain's frontier)")
+        need(self.frontier_start_prob == 0 or self.diverse_starts,
+             "frontier_start_prob > 0 draws some of the diverse starts on the chain's frontier: "
+             "it needs diverse_starts=true")
+        need(self.frontier_start_prob == 0 and not self.frontier_parent or self.hierarchical,
+             f"frontier_start_prob and frontier_parent act on the skill chain: algo={self.algo!r} "
+             f"has none; use one of {HIERARCHICAL_ALGOS} or leave them off")
+        need(0 <= self.frontier_inner_radius < self.frontier_radius,
+             f"frontier_inner_radius={self.frontier_inner_radius} and frontier_radius="
+             f"{self.frontier_radius}: need 0 <= frontier_inner_radius < frontier_radius")
+        need(self.frontier_candidates >= 1 and self.frontier_min_open >= 1,
+             f"frontier_candidates={self.frontier_candidates} and frontier_min_open="
+             f"{self.frontier_min_open} must be >= 1")
         need(isinstance(self.shared_critic, bool),
              f"shared_critic={self.shared_critic!r} must be True or False")
         need(self.shared_critic or not self.model_based,

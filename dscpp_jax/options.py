@@ -6,7 +6,8 @@ Rows of the table (``K = ChainConfig.max_options``):
   execution counters: it stores no examples and never gets classifiers (its initiation set is the
   whole state space by definition, and no option targets it).
 - row 1, the *goal option*: targets the task goal; the first link of the chain.
-- rows 2.., chain links in creation order. Row ``k`` targets its parent (``parent[k] = k - 1``): it
+- rows 2.., chain links in creation order. Row ``k`` targets its parent (``parent[k] = k - 1`` in
+  the paper's linear chain; an older row when :mod:`dscpp_jax.frontier` picks parents): it
   terminates inside the parent's pessimistic initiation region. Because links are created one at a
   time, a parent always has a smaller index than its child, so "walk the chain from the goal option
   outward" is "walk the rows in increasing index".
@@ -475,7 +476,28 @@ def start_covered(chain: Chain, start_xy) -> jax.Array:
     return jnp.any(ini & (chain.status == MATURE))
 
 
-def grow_chain(chain: Chain, start_xy) -> Chain:
+def clear_row(chain: Chain, row, pred) -> Chain:
+    """Where the scalar ``pred`` holds, forget everything row ``row`` learned: its counters,
+    examples and classifiers (status and parent stay). For a link re-targeted in gestation, whose
+    examples describe reaching another parent."""
+    cfg = chain.cfg
+    hit = (jnp.arange(cfg.max_options) == jnp.asarray(row)) & jnp.asarray(pred, bool)
+    empty = _empty_classifiers(cfg)
+
+    def keep(a, zero):
+        m = hit.reshape((-1,) + (1,) * (a.ndim - 1))
+        return jnp.where(m, zero, a)
+
+    return chain.replace(
+        successes=keep(chain.successes, 0), executions=keep(chain.executions, 0),
+        pos_mask=keep(chain.pos_mask, False), pos_count=keep(chain.pos_count, 0),
+        neg_mask=keep(chain.neg_mask, False), neg_count=keep(chain.neg_count, 0),
+        clf=jax.tree_util.tree_map(keep, chain.clf, empty),
+        fitted=keep(chain.fitted, False), dirty=keep(chain.dirty, False),
+        pess_ok=keep(chain.pess_ok, False), robust_ok=keep(chain.robust_ok, False))
+
+
+def grow_chain(chain: Chain, start_xy, open_fn=None) -> Chain:
     """Maturity, then chain growth (call after :func:`refit`, once per learning iteration).
 
     1. Options in gestation with at least ``gestation`` successes become mature.
@@ -483,6 +505,12 @@ def grow_chain(chain: Chain, start_xy) -> Chain:
        option's initiation set holds ``start_xy`` (pass the env's start state, ``env.start``), a
        new option is created in the next free row, in gestation, whose parent is the newest mature
        option. When the table is full, ``capacity_hit`` is set instead (sticky).
+
+    ``open_fn`` (optional; beyond the paper, :mod:`dscpp_jax.frontier`): a function of the chain
+    (after step 1) returning (K,) bool, which rows have an open frontier. A new option's parent is
+    then the newest mature option with an open frontier (the newest mature one when none is
+    open), and a link in gestation whose parent's frontier has closed is re-targeted there, its
+    examples cleared (:func:`clear_row`).
     """
     cfg = chain.cfg
     K = cfg.max_options
@@ -495,6 +523,17 @@ def grow_chain(chain: Chain, start_xy) -> Chain:
     chain = chain.replace(status=status)
     mature = status == MATURE
     newest = jnp.max(jnp.where(mature, idx, -1))
+    if open_fn is not None:
+        from dscpp_jax import frontier
+        is_open = jnp.asarray(open_fn(chain), bool)
+        newest = frontier.frontier_parent(chain, is_open)
+        g = frontier.gestation_row(chain)
+        gc = jnp.clip(g, 0)
+        p = chain.parent[gc]
+        switch = ((g >= 0) & (p >= 0) & ~is_open[jnp.clip(p, 0)] & (newest >= 0)
+                  & is_open[jnp.clip(newest, 0)] & (newest != p))
+        chain = clear_row(chain, g, switch)
+        chain = chain.replace(parent=chain.parent.at[gc].set(jnp.where(switch, newest, p)))
     newest_c = jnp.clip(newest, 0)
     want = ((~jnp.any(status == GESTATION)) & (newest >= 0) & chain.fitted[newest_c]
             & ~start_covered(chain, start_xy))

@@ -210,6 +210,9 @@ def prewarm_physics(config: Config) -> Optional[threading.Thread]:
 INBAND_KEY_SALT = 0x1B_E7A1
 """`init`'s key folded with this gives the in-band stream's key (the training stream's keys come
 from splitting `init`'s key, so they are the same with in-band evaluation on or off)."""
+FRONTIER_KEY_SALT = 0xF0_27E1
+"""The iteration's key folded with this gives the frontier candidates' key (dscpp_jax.frontier),
+off the keys the rest of the iteration splits, so runs without the frontier are unchanged."""
 
 
 def td3_config(config: Config) -> TD3Config:
@@ -445,6 +448,12 @@ def _rollout(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[s
 
     # the in-band envs act with the policy as of this iteration's start, as `evaluate(state)` does
     ib_env, ib_chain = (inband_env(config), state.chain) if state.inband is not None else (None, None)
+    # frontier starts (beyond the paper, dscpp_jax.frontier): candidates next to the region that
+    # the link in gestation targets, fixed for the iteration (the chain changes between them)
+    front = None
+    if config.hierarchical and config.frontier_start_prob > 0:
+        front = _frontier_pool(config, env, state.chain,
+                               jax.random.fold_in(key, FRONTIER_KEY_SALT))
 
     def body(carry, k):
         es, ex, chain, replay, model_replay, acc, ib = carry
@@ -508,7 +517,7 @@ def _rollout(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[s
         def reset_all(_):
             ks = jax.random.split(k_reset, B)
             if config.diverse_starts:
-                starts = jax.vmap(env.sample_start)(jax.random.split(k_start, B))
+                starts = _diverse_starts(config, env, k_start, B, front)
                 fresh_div = jax.vmap(env.reset_at)(ks, starts)
                 fresh_task = jax.vmap(env.reset)(ks)
                 fresh = select_state(warm_next, fresh_task, fresh_div)
@@ -675,7 +684,23 @@ def _learn(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[str
     chain, dp_table = state.chain, state.dp_table
     if config.hierarchical:
         chain = _refit(config, chain, seed_axis)
-        chain = _grow_chain(config, chain, jnp.asarray(env.start, jnp.float32))
+        if config.frontier_parent:
+            from dscpp_jax import frontier
+            cand = _frontier_candidates(config, env, jax.random.fold_in(key, FRONTIER_KEY_SALT))
+
+            def open_fn(c):
+                return frontier.open_rows(frontier.frontier_probe(c, cand, config.frontier_radius),
+                                          config.frontier_min_open)
+
+            g0, p0 = frontier.gestation_row(chain), chain.parent
+            chain = _grow_chain(config, chain, jnp.asarray(env.start, jnp.float32), open_fn)
+            g = frontier.gestation_row(chain)
+            gc = jnp.clip(g, 0)
+            metrics["frontier/retargeted"] = ((g >= 0) & (g == g0)
+                                              & (chain.parent[gc] != p0[gc])).astype(jnp.float32)
+            metrics["frontier/open_rows"] = jnp.sum(open_fn(chain)).astype(jnp.float32)
+        else:
+            chain = _grow_chain(config, chain, jnp.asarray(env.start, jnp.float32))
         if config.subgoal == "dp":
             dp_table = _dp_value_table(config, chain, td3)
         metrics.update(_chain_metrics(config, chain, env.start))
@@ -899,9 +924,39 @@ def _refit(config: Config, chain, seed_axis=None):
     return refit(chain, seed_axis=seed_axis)
 
 
-def _grow_chain(config: Config, chain, start_xy):
+def _grow_chain(config: Config, chain, start_xy, open_fn=None):
     from dscpp_jax.options import grow_chain
-    return grow_chain(chain, start_xy)
+    return grow_chain(chain, start_xy, open_fn)
+
+
+def _diverse_starts(config: Config, env, k_start, B: int, front=None):
+    """(B, 2) start positions of episodes that begin at a diverse start: the env's sampler, or,
+    for a `frontier_start_prob` share of the envs (drawn with the same uniform that
+    `task_start_prob` uses: [task start | frontier | diverse]), a random candidate of the frontier
+    pool `front` = (candidates (M, 2), pool (M,) bool) when the pool holds any."""
+    starts = jax.vmap(env.sample_start)(jax.random.split(k_start, B))
+    if front is None:
+        return starts
+    u = jax.random.uniform(jax.random.fold_in(k_start, 1), (B,))
+    at_front = ((u >= config.task_start_prob)
+                & (u < config.task_start_prob + config.frontier_start_prob))
+    cand, pool = front
+    pick = jax.random.uniform(jax.random.fold_in(k_start, 2), (B,) + pool.shape)
+    pick = jnp.argmax(jnp.where(pool[None, :], pick, -1.0), axis=1)
+    return jnp.where((at_front & pool.any())[:, None], cand[pick], starts)
+
+
+def _frontier_candidates(config: Config, env, key):
+    """(M, 2) candidate states for the frontier probe: the env's diverse-start sampler."""
+    return jax.vmap(env.sample_start)(jax.random.split(key, config.frontier_candidates))
+
+
+def _frontier_pool(config: Config, env, chain, key):
+    """(candidates (M, 2), pool (M,) bool): where this iteration's frontier starts come from."""
+    from dscpp_jax import frontier
+    cand = _frontier_candidates(config, env, key)
+    return cand, frontier.start_pool(chain, frontier.frontier_probe(
+        chain, cand, config.frontier_radius, config.frontier_inner_radius))
 
 
 def _dp_value_table(config: Config, chain, td3):

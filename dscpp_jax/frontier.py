@@ -1,0 +1,89 @@
+"""The chain's frontier: free space next to an option's region that no mature option covers yet.
+
+Beyond the paper (both uses are off by default; ``docs/training.md``, "The chain's frontier").
+The paper grows a linear chain: each new option targets the newest mature one, and learns its
+initiation region from wherever its executions happen to succeed. With diverse starts spread
+uniformly over the maze, that is where most free space lies, so at a junction the chain can turn
+into a dead end; once it has filled the dead end, the option in gestation finds no uncovered state
+within reach of its target and the chain stops (``experiments/results/paper/README.md``). Two uses
+of one probe address that:
+
+- **frontier starts** (``Config.frontier_start_prob``): a share of the training episodes starts in
+  uncovered free space within ``radius`` of the region of the option that the option in gestation
+  targets (and at least ``inner`` from it), where that option's executions can succeed (a reverse
+  curriculum over the chain);
+- **frontier parents** (``Config.frontier_parent``): a new option targets the newest mature option
+  whose frontier is still open, and an option in gestation whose target's frontier has closed (a
+  filled dead end) is re-targeted there, its examples cleared. The chain becomes a tree whose
+  branches end in dead ends; the policy over options still walks the rows in increasing index
+  (every parent is older than its child).
+
+The probe is a Monte Carlo estimate from candidate states drawn by the env's diverse-start sampler
+(uniform over free space, the same knowledge diverse starts already use): candidate ``m`` is on the
+frontier of row ``k`` when no mature option's initiation set (optimistic OR pessimistic) holds it
+and it lies within ``radius`` of one of row ``k``'s positive states inside ``k``'s pessimistic region
+(the states its children draw subgoals from). Pure and shape-stable: candidates (M, 2) in, (K, M)
+out; vmap over seeds.
+"""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from dscpp_jax.options import GESTATION, GOAL, MATURE, Chain, _classify_all
+
+
+def frontier_probe(chain: Chain, cand_xy, radius: float, inner: float = 0.0) -> jax.Array:
+    """(K, M) bool: candidate m (``cand_xy`` (M, 2)) is uncovered free space within ``radius`` of
+    mature row k's positive states inside k's pessimistic region, and no nearer than ``inner`` to
+    any of them (False for other rows)."""
+    cand = jnp.asarray(cand_xy, jnp.float32)
+    if cand.ndim != 2 or cand.shape[-1] != 2:
+        raise ValueError(f"frontier_probe: cand_xy must have shape (M, 2), got {cand.shape}")
+    if not float(radius) > 0 or not 0 <= float(inner) < float(radius):
+        raise ValueError(f"frontier_probe: need 0 <= inner < radius, got inner={inner}, "
+                         f"radius={radius}")
+    mature = chain.status == MATURE
+    ini = jax.vmap(lambda p: _classify_all(chain, p)[0])(cand)            # (M, K)
+    uncovered = ~jnp.any(ini & mature[None, :], axis=1)                     # (M,)
+    K, P, L = chain.pos_xy.shape[:3]
+    r2, i2 = float(radius) ** 2, float(inner) ** 2
+
+    def row_near(args):
+        xy, ok = args                                                       # (P, L, 2), (P, L)
+        d2 = jnp.sum((cand[:, None, :] - xy.reshape(P * L, 2)[None]) ** 2, axis=-1)
+        d2 = jnp.min(jnp.where(ok.reshape(P * L)[None, :], d2, jnp.inf), axis=1)   # (M,)
+        return (d2 <= r2) & (d2 >= i2)
+
+    near = jax.lax.map(row_near, (chain.pos_xy, chain.pess_ok))            # (K, M)
+    return near & uncovered[None, :] & mature[:, None]
+
+
+def open_rows(probe: jax.Array, min_count: int) -> jax.Array:
+    """(K,) bool: rows with at least ``min_count`` frontier candidates (an open frontier)."""
+    return jnp.sum(probe, axis=1) >= min_count
+
+
+def gestation_row(chain: Chain) -> jax.Array:
+    """int32 row of the chain link in gestation (at most one), -1 when none."""
+    idx = jnp.arange(chain.cfg.max_options)
+    gest = (chain.status == GESTATION) & (idx > GOAL)
+    return jnp.where(gest.any(), jnp.argmax(gest), -1).astype(jnp.int32)
+
+
+def start_pool(chain: Chain, probe: jax.Array) -> jax.Array:
+    """(M,) bool: the frontier of the row that the link in gestation targets (all False when no
+    link is in gestation): where frontier starts are drawn from."""
+    g = gestation_row(chain)
+    p = chain.parent[jnp.clip(g, 0)]
+    return probe[jnp.clip(p, 0)] & (g >= 0) & (p >= 0)
+
+
+def frontier_parent(chain: Chain, is_open: jax.Array) -> jax.Array:
+    """int32: the newest mature row with an open frontier; the newest mature row when none is
+    open; -1 when no row is mature."""
+    idx = jnp.arange(chain.cfg.max_options)
+    mature = chain.status == MATURE
+    newest = jnp.max(jnp.where(mature, idx, -1))
+    newest_open = jnp.max(jnp.where(mature & is_open, idx, -1))
+    return jnp.where(newest_open >= 0, newest_open, newest).astype(jnp.int32)
