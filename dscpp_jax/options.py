@@ -497,7 +497,13 @@ def clear_row(chain: Chain, row, pred) -> Chain:
         pess_ok=keep(chain.pess_ok, False), robust_ok=keep(chain.robust_ok, False))
 
 
-def grow_chain(chain: Chain, start_xy, open_fn=None) -> Chain:
+def mature_options(chain: Chain) -> Chain:
+    """Options in gestation with at least ``gestation`` successes become mature (idempotent)."""
+    matured = (chain.status == GESTATION) & (chain.successes >= chain.cfg.gestation)
+    return chain.replace(status=jnp.where(matured, MATURE, chain.status))
+
+
+def grow_chain(chain: Chain, start_xy, is_open=None) -> Chain:
     """Maturity, then chain growth (call after :func:`refit`, once per learning iteration).
 
     1. Options in gestation with at least ``gestation`` successes become mature.
@@ -506,11 +512,11 @@ def grow_chain(chain: Chain, start_xy, open_fn=None) -> Chain:
        new option is created in the next free row, in gestation, whose parent is the newest mature
        option. When the table is full, ``capacity_hit`` is set instead (sticky).
 
-    ``open_fn`` (optional; beyond the paper, :mod:`dscpp_jax.frontier`): a function of the chain
-    (after step 1) returning (K,) bool, which rows have an open frontier. A new option's parent is
-    then the newest mature option with an open frontier (the newest mature one when none is
-    open), and a link in gestation whose parent's frontier has closed is re-targeted there, its
-    examples cleared (:func:`clear_row`).
+    ``is_open`` (optional; beyond the paper, :mod:`dscpp_jax.frontier`): (K,) bool, which rows
+    have an open frontier, measured on the chain after step 1 (:func:`mature_options`). A new
+    option's parent is then the newest mature option with an open frontier (the newest mature one
+    when none is open), and a link in gestation whose parent's frontier has closed is re-targeted
+    there, its examples cleared (:func:`clear_row`).
     """
     cfg = chain.cfg
     K = cfg.max_options
@@ -518,14 +524,12 @@ def grow_chain(chain: Chain, start_xy, open_fn=None) -> Chain:
     if start_xy.shape != (2,):
         raise ValueError(f"grow_chain: start_xy must have shape (2,), got {start_xy.shape}")
     idx = jnp.arange(K)
-    matured = (chain.status == GESTATION) & (chain.successes >= cfg.gestation)
-    status = jnp.where(matured, MATURE, chain.status)
-    chain = chain.replace(status=status)
-    mature = status == MATURE
-    newest = jnp.max(jnp.where(mature, idx, -1))
-    if open_fn is not None:
+    chain = mature_options(chain)
+    status = chain.status
+    newest = jnp.max(jnp.where(status == MATURE, idx, -1))
+    if is_open is not None:
         from dscpp_jax import frontier
-        is_open = jnp.asarray(open_fn(chain), bool)
+        is_open = jnp.asarray(is_open, bool)
         newest = frontier.frontier_parent(chain, is_open)
         g = frontier.gestation_row(chain)
         gc = jnp.clip(g, 0)

@@ -686,19 +686,20 @@ def _learn(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[str
         chain = _refit(config, chain, seed_axis)
         if config.frontier_parent:
             from dscpp_jax import frontier
+            from dscpp_jax.options import mature_options
             cand = _frontier_candidates(config, env, jax.random.fold_in(key, FRONTIER_KEY_SALT))
-
-            def open_fn(c):
-                return frontier.open_rows(frontier.frontier_probe(c, cand, config.frontier_radius),
-                                          config.frontier_min_open)
-
+            chain = mature_options(chain)
+            # growth leaves mature rows as they are, so this holds for the grown chain too
+            is_open = frontier.open_rows(frontier.frontier_probe(chain, cand,
+                                                                 config.frontier_radius),
+                                         config.frontier_min_open)
             g0, p0 = frontier.gestation_row(chain), chain.parent
-            chain = _grow_chain(config, chain, jnp.asarray(env.start, jnp.float32), open_fn)
+            chain = _grow_chain(config, chain, jnp.asarray(env.start, jnp.float32), is_open)
             g = frontier.gestation_row(chain)
             gc = jnp.clip(g, 0)
             metrics["frontier/retargeted"] = ((g >= 0) & (g == g0)
                                               & (chain.parent[gc] != p0[gc])).astype(jnp.float32)
-            metrics["frontier/open_rows"] = jnp.sum(open_fn(chain)).astype(jnp.float32)
+            metrics["frontier/open_rows"] = jnp.sum(is_open).astype(jnp.float32)
         else:
             chain = _grow_chain(config, chain, jnp.asarray(env.start, jnp.float32))
         if config.subgoal == "dp":
@@ -924,9 +925,9 @@ def _refit(config: Config, chain, seed_axis=None):
     return refit(chain, seed_axis=seed_axis)
 
 
-def _grow_chain(config: Config, chain, start_xy, open_fn=None):
+def _grow_chain(config: Config, chain, start_xy, is_open=None):
     from dscpp_jax.options import grow_chain
-    return grow_chain(chain, start_xy, open_fn)
+    return grow_chain(chain, start_xy, is_open)
 
 
 def _diverse_starts(config: Config, env, k_start, B: int, front=None):

@@ -1,7 +1,5 @@
 """The chain's frontier: the probe against a NumPy oracle, re-targeting and parents in grow_chain,
 frontier starts in the trainer."""
-import functools
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -81,8 +79,7 @@ def test_probe_refuses_bad_input(two_links):
 
 
 def _grow_with(chain, is_open):
-    return jax.jit(functools.partial(O.grow_chain, open_fn=lambda c: jnp.asarray(is_open)))(
-        chain, START_XY)
+    return jax.jit(O.grow_chain)(chain, START_XY, jnp.asarray(is_open))
 
 
 def test_a_link_whose_target_frontier_closed_is_retargeted(two_links):
