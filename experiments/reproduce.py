@@ -122,7 +122,8 @@ def plan(args) -> dict:
     if "6" in figs:
         out["6"] = [Exp(m, a, ep, seeds) for m in mazes for a in FIG6_ALGOS if a in algos]
         if args.long_td3:
-            out["6"].append(Exp("u_maze", "td3_her", args.long_td3_episodes, seeds, tag="long"))
+            out["6"].append(Exp("u_maze", "td3_her", args.long_td3_episodes,
+                                args.long_td3_seeds or seeds, tag="long"))
     if "5" in figs:
         out["5"] = [Exp("u_maze", a, ep, seeds) for a in FIG5_ALGOS if a in algos]
     if "A3" in figs:
@@ -336,12 +337,13 @@ def train_one(exp: Exp, args, gpus, per_gpu: int = 1) -> str:
     cmd = train_command(exp, gdir, args, resume, budget)
     shown = " ".join(["python"] + cmd[1:])
     if gpu is not None:
-        env["CUDA_VISIBLE_DEVICES"] = gpu
+        env["CUDA_VISIBLE_DEVICES"] = ",".join(slot_gpus(gpu))
     share = per_gpu if gpu is not None else args.jobs
     if share > 1 and "XLA_PYTHON_CLIENT_MEM_FRACTION" not in env:
         # several calls on one GPU: each may take its share, not JAX's default 75 %
         env["XLA_PYTHON_CLIENT_MEM_FRACTION"] = f"{0.9 / share:.2f}"
-    where = f" on GPU {gpu}" if gpu is not None else ""
+    where = (f" on GPU {gpu}" if gpu is not None and "+" not in gpu
+             else f" on GPUs {gpu.replace('+', ',')}" if gpu is not None else "")
     say(f"[reproduce] {name}: {'resumed' if resume else 'started'}{where} (log: {log})",
           flush=True)
     t0 = time.time()
@@ -386,20 +388,62 @@ def check_gpus_allowed(gpus) -> None:
     if env is None:
         return
     allowed = visible_gpus()
-    bad = [g for g in gpus if g not in allowed]
+    bad = [g for slot in gpus for g in slot_gpus(slot) if g not in allowed]
     if bad:
         raise ValueError(f"--gpus {','.join(gpus)}: {','.join(bad)} not in "
                          f"CUDA_VISIBLE_DEVICES={env}; name GPUs from that list "
                          f"(e.g. --gpus {','.join(allowed) or '<none visible>'})")
 
 
+def slot_gpus(slot: str) -> list:
+    """The GPUs of one --gpus entry: "2" is one GPU, "0+1+2+3" four GPUs that one train call
+    gets together (its group's seeds are then split evenly over them)."""
+    return [g.strip() for g in slot.split("+")]
+
+
 def gpu_slots(gpus, jobs: int) -> list:
-    """The GPU of each of `jobs` concurrent train calls, round robin over `gpus`: several calls
-    share a GPU when there are more calls than GPUs (one group's physics is latency bound)."""
+    """The GPU (or GPUs, "0+1") of each of `jobs` concurrent train calls, round robin over
+    `gpus`: several calls share a GPU when there are more calls than GPUs (one group's physics is
+    latency bound)."""
     gpus = list(gpus)
     if not gpus:
         raise ValueError("--gpus names no GPU")
+    for slot in gpus:
+        ids = slot_gpus(slot)
+        if not all(g.isdigit() for g in ids) or len(set(ids)) < len(ids):
+            raise ValueError(f"--gpus entry {slot!r}: write a GPU id (e.g. 2) or several joined "
+                             "by + (e.g. 0+1+2+3) for one train call, each id once")
     return [gpus[j % len(gpus)] for j in range(max(1, jobs))]
+
+
+def long_td3_seeds(args) -> Optional[str]:
+    """The long TD3+HER group's seeds for the report: --long-td3-seeds, else those of the one
+    such group in the runs root (it may have other seeds than --seeds), else None (--seeds)."""
+    if args.long_td3_seeds or not args.runs_root or not os.path.isdir(args.runs_root):
+        return args.long_td3_seeds
+    pre = f"{args.env_map.get('u_maze', 'u_maze')}-td3_her-g"
+    found = [d[len(pre):-len("-long")] for d in os.listdir(args.runs_root)
+             if d.startswith(pre) and d.endswith("-long")]
+    return found[0] if len(found) == 1 else None
+
+
+def check_slot_sizes(figs: dict, slots: list, args) -> None:
+    """A group split over several GPUs needs a multiple of their number of seeds (groups are
+    never padded): say so before anything trains. Finished groups are only skipped."""
+    from dscpp_jax.seed_group import parse_seeds
+    env_map = args.env_map
+    for e in dict.fromkeys(e for es in figs.values() for e in es):
+        if group_state(os.path.join(args.runs_root, e.name(env_map)),
+                       schedule(e, args)) == "finished":
+            continue
+        n = len(parse_seeds(e.seeds))
+        for slot in slots:
+            k = len(slot_gpus(slot))
+            if n % k:
+                raise ValueError(f"{e.name(env_map)}: {n} seeds do not split evenly over the "
+                                 f"{k} GPUs of --gpus entry {slot}; give that figure's groups a "
+                                 f"multiple of {k} seeds (--seeds, --long-td3-seeds, "
+                                 f"--a1-seeds) or fewer GPUs per entry")
 
 
 def train_all(args, figs: dict) -> dict:
@@ -768,6 +812,16 @@ def _pick(steps: list, k: int) -> list:
     return [steps[i] for i in sorted(set(np.linspace(0, len(steps) - 1, k).round().astype(int)))]
 
 
+def _from_first_fitted(seed_dir: str, steps: list, resolution: int, recompute: bool) -> list:
+    """`steps` from the first checkpoint where the goal option holds a region: the warm-up's
+    checkpoints (no region at all) show nothing worth a panel. All of `steps` if none has one."""
+    for i, step in enumerate(steps):
+        r = goal_regions(seed_dir, step, resolution, recompute=recompute)
+        if (r["opt"] > 0).any() or (r["pes"] > 0).any():
+            return steps[i:]
+    return steps
+
+
 def figA1(data: Data, out: str) -> Optional[str]:
     from dscpp_jax.plots import _draw_maze, _layout
     from dscpp_jax.run_logging import load_config
@@ -777,7 +831,8 @@ def figA1(data: Data, out: str) -> Optional[str]:
         if data.dirs(e):
             d = data.dirs(e)[0]
             kept = checkpoint_steps(data.info[e]["dir"])
-            steps = _pick(kept or cached_a1_steps(d), k)
+            steps = _pick(_from_first_fitted(d, kept or cached_a1_steps(d),
+                                             data.args.a1_resolution, bool(kept)), k)
             if steps:
                 todo.append((e, d, kept, steps))
     if not todo:
@@ -1136,6 +1191,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also train TD3+HER on U-maze for --long-td3-episodes (Figure 6's "
                         "dashed line)")
     p.add_argument("--long-td3-episodes", type=int, default=12000)
+    p.add_argument("--long-td3-seeds", default=None,
+                   help="seeds of the 12,000-episode TD3+HER group (default: --seeds); e.g. 0-7 "
+                        "to split it evenly over 4 GPUs given to one call (--gpus 0+1+2+3)")
     p.add_argument("--fig4-algo", default="mb_dscpp", help="Figure 4's algorithm (and A1's DSC++)")
     p.add_argument("--fig4-episodes", type=int, default=1000)
     p.add_argument("--a1-seeds", default="0", help="seeds of appendix Figure 1's runs")
@@ -1164,8 +1222,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "GPUs, and calls that share a GPU split its memory")
     p.add_argument("--gpus", default=None, metavar="LIST",
                    help="e.g. 0,1,2,3: each train call gets one of these GPUs "
-                        "(CUDA_VISIBLE_DEVICES); a group's seeds then share that GPU. Where "
-                        "CUDA_VISIBLE_DEVICES is set, name GPUs from it")
+                        "(CUDA_VISIBLE_DEVICES); a group's seeds then share that GPU. 0+1+2+3: "
+                        "one call gets the four GPUs and splits its group's seeds over them "
+                        "(a multiple of 4 seeds). Where CUDA_VISIBLE_DEVICES is set, name GPUs "
+                        "from it")
     p.add_argument("--report-only", action="store_true",
                    help="train nothing: figures, CSVs and README from the runs that exist")
     p.add_argument("--dry-run", action="store_true", help="print the train commands only")
@@ -1251,6 +1311,8 @@ def main(argv: Optional[list] = None) -> int:
         from dscpp_jax.seed_group import parse_seeds
         parse_seeds(args.seeds)
         parse_seeds(args.a1_seeds)
+        if args.long_td3_seeds is not None:
+            parse_seeds(args.long_td3_seeds)
         if args.gpus is not None:
             gpu_slots(_csv_list(args.gpus, ()), args.jobs)
             check_gpus_allowed(_csv_list(args.gpus, ()))
@@ -1276,6 +1338,12 @@ def main(argv: Optional[list] = None) -> int:
     if not os.path.isabs(args.out):
         args.out = os.path.join(ROOT, args.out)
     args.deadline = None if args.stop_after is None else time.time() + args.stop_after
+    if args.gpus is not None and not args.report_only:
+        try:
+            check_slot_sizes(figs, gpu_slots(_csv_list(args.gpus, ()), args.jobs), args)
+        except ValueError as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 2
     status = {} if args.report_only else train_all(args, figs)
     if args.dry_run:
         return 0
@@ -1288,7 +1356,8 @@ def main(argv: Optional[list] = None) -> int:
     use_compile_cache(args.compile_cache)
     os.makedirs(args.out, exist_ok=True)
     # the report covers every figure whose runs exist, whichever this call trained
-    everything = plan(argparse.Namespace(**{**vars(args), "fig": "all", "long_td3": True}))
+    everything = plan(argparse.Namespace(**{**vars(args), "fig": "all", "long_td3": True,
+                                            "long_td3_seeds": long_td3_seeds(args)}))
     data = Data(args, everything)
     makers = {"6": fig6, "5": fig5, "A2": figA2, "A3": figA3, "4": fig4, "A1": figA1}
     figures = {}

@@ -401,3 +401,63 @@ def test_appendix_figure_1_counts_from_the_first_fitted_checkpoint():
     # DSC's region as large as ours at the end: not reproduced either
     ours = [(223, 137.5, 10.0), (1005, 52.9, 12.1)]
     assert not reproduce.a1_verdict({"dsc": dsc, "mb_dscpp": ours}, "mb_dscpp")[1]
+
+
+def test_appendix_figure_1_panels_start_at_the_first_fitted_checkpoint(tmp_path):
+    # cached regions of a lean copy: the warm-up's checkpoint 5 holds none, 10 only a pessimistic
+    # one, 15 both; no checkpoint there, so nothing is recomputed
+    d = str(tmp_path)
+    gx, gy = np.meshgrid(np.linspace(-1, 1, 4), np.linspace(-1, 1, 4))
+    empty, some = -np.ones_like(gx), np.where(gx > 0, 1.0, -1.0)
+    for step, opt, pes in ((5, empty, empty), (10, empty, some), (15, some, some)):
+        np.savez(os.path.join(d, f"reproduce_a1_{step}.npz"), step=np.asarray(step),
+                 episodes=np.asarray(step * 10), gx=gx, gy=gy, opt=opt, pes=pes)
+    steps = reproduce.cached_a1_steps(d)
+    assert steps == [5, 10, 15]
+    assert reproduce._from_first_fitted(d, steps, 4, False) == [10, 15]
+    assert reproduce._from_first_fitted(d, [5], 4, False) == [5]   # nothing fitted: keep them
+
+
+def test_one_train_call_can_take_several_gpus(tmp_path, capsys, monkeypatch):
+    # the 12,000-episode TD3+HER group split over four GPUs (groups are never padded)
+    monkeypatch.delenv("CUDA_VISIBLE_DEVICES", raising=False)
+    runs, out = str(tmp_path / "runs"), str(tmp_path / "out")
+    base = ["--fig", "6", "--mazes", "u_maze", "--algos", "td3_her", "--long-td3",
+            "--long-td3-episodes", "30", "--episodes", "20", "--runs-root", runs, "--out", out]
+    assert reproduce.main(base + ["--long-td3-seeds", "0-7", "--gpus", "0+1+2+3"]) == 2
+    err = capsys.readouterr().err
+    assert ("u_maze-td3_her-g0-4: 5 seeds do not split evenly over the 4 GPUs of --gpus entry "
+            "0+1+2+3") in err
+    for bad in ("0+0", "0+a", "1+"):
+        assert reproduce.main(base + ["--gpus", bad, "--dry-run"]) == 2
+        assert f"--gpus entry {bad!r}" in capsys.readouterr().err
+    assert not os.path.exists(runs)
+    calls = []
+
+    def fake_call(cmd, cwd, env, stdout, stderr):
+        calls.append((cmd, env["CUDA_VISIBLE_DEVICES"]))
+        return 1
+
+    monkeypatch.setattr(reproduce.subprocess, "call", fake_call)
+    reproduce.main(base + ["--seeds", "0-3", "--long-td3-seeds", "0-7", "--gpus", "0+1+2+3"])
+    text = capsys.readouterr().out
+    assert "u_maze-td3_her-g0-7-long: started on GPUs 0,1,2,3" in text
+    assert sorted((c[c.index("--seeds") + 1], gpus) for c, gpus in calls) == [
+        ("0-3", "0,1,2,3"), ("0-7", "0,1,2,3")]
+    # the report finds the long group by its directory, whatever its seeds
+    os.makedirs(os.path.join(runs, "u_maze-td3_her-g0-7-long"))
+    args = reproduce.build_parser().parse_args(["--runs-root", runs])
+    args.env_map = {}
+    assert reproduce.long_td3_seeds(args) == "0-7"
+    args.long_td3_seeds = "0-3"
+    assert reproduce.long_td3_seeds(args) == "0-3"
+    # a finished 5-seed group is only skipped: it does not stop the long group's 8 seeds
+    runs2 = str(tmp_path / "runs2")
+    shutil.copytree(os.path.join(reproduce.ROOT, "experiments", "results", "paper", "runs",
+                                 "u_maze-td3_her-g0-4"), os.path.join(runs2, "u_maze-td3_her-g0-4"))
+    calls.clear()
+    reproduce.main(["--fig", "6", "--mazes", "u_maze", "--algos", "td3_her", "--long-td3",
+                    "--long-td3-seeds", "0-7", "--gpus", "0+1+2+3", "--runs-root", runs2,
+                    "--out", out])
+    assert "u_maze-td3_her-g0-4: skipped (finished)" in capsys.readouterr().out
+    assert [(c[c.index("--seeds") + 1], gpus) for c, gpus in calls] == [("0-7", "0,1,2,3")]
