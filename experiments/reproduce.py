@@ -342,8 +342,8 @@ def train_one(exp: Exp, args, gpus, per_gpu: int = 1) -> str:
     if share > 1 and "XLA_PYTHON_CLIENT_MEM_FRACTION" not in env:
         # several calls on one GPU: each may take its share, not JAX's default 75 %
         env["XLA_PYTHON_CLIENT_MEM_FRACTION"] = f"{0.9 / share:.2f}"
-    where = (f" on GPU {gpu}" if gpu is not None and "+" not in gpu
-             else f" on GPUs {gpu.replace('+', ',')}" if gpu is not None else "")
+    where = ("" if gpu is None else
+             f" on GPU{'s' if '+' in gpu else ''} {','.join(slot_gpus(gpu))}")
     say(f"[reproduce] {name}: {'resumed' if resume else 'started'}{where} (log: {log})",
           flush=True)
     t0 = time.time()
