@@ -518,6 +518,16 @@ def final_evals(dirs, column: str) -> Optional[np.ndarray]:
     return np.array(out) if out else None
 
 
+def final_success(dirs) -> Optional[np.ndarray]:
+    """Each run's success at the end: its final evaluation (`eval.json`, see `final_evals`),
+    else the last periodic evaluation in metrics.csv; None where neither exists."""
+    v = final_evals(dirs, "eval/success_rate")
+    if v is None:
+        cs = curves(dirs, "eval/success_rate", inband=False)
+        v = finals(cs) if cs else None
+    return v
+
+
 def _plt():
     import matplotlib
     matplotlib.use("Agg")
@@ -618,11 +628,10 @@ def fig6(data: Data, out: str) -> Optional[str]:
     panels = [(_maze_title(m, data.args.env_map), [e for e in exps if e.env == m]) for m in mazes]
     hline = None
     long = [e for e in data.figs["6"] if e.tag == "long"]
-    if long:
-        cs = curves(data.dirs(long[0]), "eval/success_rate", inband=False)
-        if cs:
-            hline = (_maze_title("u_maze", data.args.env_map), float(finals(cs).mean()),
-                     f"TD3+HER after {long[0].episodes} episodes (n={len(cs)})")
+    v = final_success(data.dirs(long[0])) if long else None
+    if v is not None:
+        hline = (_maze_title("u_maze", data.args.env_map), float(v.mean()),
+                 f"TD3+HER after {long[0].episodes} episodes (n={len(v)})")
     path = curve_figure(data, panels, "eval/success_rate", "success rate from the start",
                         os.path.join(out, "fig6.png"), os.path.join(out, "fig6.csv"), hline=hline)
     if path and hline is not None:

@@ -307,6 +307,32 @@ def test_final_success_comes_from_eval_json_of_the_last_iteration(tmp_path):
     assert reproduce.final_evals([], "eval/success_rate") is None
 
 
+def test_long_td3_line_reads_the_final_evaluation(tmp_path):
+    """Figure 6's dashed line (TD3+HER after 12,000 episodes) is the mean of each seed's final
+    success: eval.json for runs that evaluate only in-band (the ant preset), the last periodic
+    evaluation otherwise; no line without either."""
+    from dscpp_jax.run_logging import RunLogger
+    ant, point, bare = [], [], []
+    for i, rate in enumerate((1.0, 0.0, 0.5)):
+        for kind, dirs in (("ant", ant), ("point", point), ("bare", bare)):
+            d = str(tmp_path / kind / f"s{i}")
+            log = RunLogger(d)
+            for j in (1, 2):
+                row = {"iteration": j, "env_steps": 100 * j, "episodes": 10 * j,
+                       "inband/success_rate": 0.25, "inband/window": 4}
+                if kind == "point":
+                    row["eval/success_rate"] = rate if j == 2 else 0.0
+                log.log(row)
+            log.close()
+            if kind == "ant":
+                with open(os.path.join(d, "eval.json"), "w") as f:
+                    json.dump({"eval/success_rate": rate, "iteration": 2}, f)
+            dirs.append(d)
+    assert reproduce.final_success(ant).tolist() == [1.0, 0.0, 0.5]
+    assert reproduce.final_success(point).tolist() == [1.0, 0.0, 0.5]
+    assert reproduce.final_success(bare) is None
+
+
 def test_an_algorithm_keeps_its_colour_in_every_panel(tmp_path, monkeypatch):
     """Figure 6's panels hold different sets of algorithms (a maze may lack a baseline's runs);
     each algorithm must be drawn in the same colour in all of them."""
