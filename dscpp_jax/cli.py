@@ -737,9 +737,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--plot", action="store_true",
                    help="at the end, write curves/trajectory/classifier plots to RUN_DIR/plots")
     det_help = ("deterministic XLA GPU kernels, so one seed gives the same run twice on a GPU with "
-                "--physics jax (default; MuJoCo Warp does not repeat either way; "
-                "--no-deterministic runs 1.1-1.3x faster on the ant but not repeatably)")
-    t.add_argument("--deterministic", action=argparse.BooleanOptionalAction, default=True,
+                "--physics jax (1.1-1.3x the time per iteration on the ant). Default: on, except "
+                "with MuJoCo Warp physics (the GPU default), which does not repeat either way")
+    t.add_argument("--deterministic", action=argparse.BooleanOptionalAction, default=None,
                    help=det_help)
     cache_help = ("directory of compiled programs reused across runs, resumes and evaluations "
                   f"(default: ${COMPILE_CACHE_ENV}, else {DEFAULT_COMPILE_CACHE}; 'off': none)")
@@ -763,7 +763,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--starts", default=None, help='start positions "x,y;x,y" (default: task start)')
     e.add_argument("--seed", type=int, default=0)
     e.add_argument("--no-plot", action="store_true")
-    e.add_argument("--deterministic", action=argparse.BooleanOptionalAction, default=True,
+    e.add_argument("--deterministic", action=argparse.BooleanOptionalAction, default=None,
                    help=det_help)
     e.add_argument("--compile-cache", default=None, metavar="DIR", help=cache_help)
     e.set_defaults(func=cmd_eval)
@@ -782,7 +782,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="draw episodes saved by --record-only (default RUN/videos/episodes.npz) "
                         "with RUN's config; needs no checkpoint")
     _add_video_args(v)
-    v.add_argument("--deterministic", action=argparse.BooleanOptionalAction, default=True,
+    v.add_argument("--deterministic", action=argparse.BooleanOptionalAction, default=None,
                    help=det_help)
     v.add_argument("--compile-cache", default=None, metavar="DIR", help=cache_help)
     v.set_defaults(func=cmd_video)
@@ -813,10 +813,58 @@ def _seconds(text: str) -> float:
     return v
 
 
+def _saved_env_physics(run_dir: str) -> Optional[tuple]:
+    """(env, physics) from a run's or a group's saved config, without touching JAX; None when
+    there is none to read."""
+    for name in ("config.json", "group.json"):
+        try:
+            with open(os.path.join(run_dir, name)) as f:
+                c = json.load(f)["config"]
+            return c.get("env", ""), c.get("physics", "auto")
+        except (OSError, ValueError, KeyError, TypeError):
+            continue
+    return None
+
+
+def runs_on_warp(args) -> bool:
+    """Whether the command's ant physics will be MuJoCo Warp: `--physics` (else `--set physics=`),
+    else the saved config of `--resume` / `--run`, else "auto", which picks Warp where warp-lang
+    is installed (the GPU default). Decided before JAX starts, so that `--deterministic`'s
+    default can follow it; point-mass twins have no MuJoCo physics."""
+    env = getattr(args, "env", None) or ""
+    physics = None
+    for item in getattr(args, "set", None) or []:
+        k, _, v = item.partition("=")
+        if k.strip().replace("-", "_") == "physics":
+            physics = v.strip()
+    physics = getattr(args, "physics", None) or physics   # as config_from_args: --physics wins
+    saved_dir = getattr(args, "resume", None) or getattr(args, "run", None)
+    if saved_dir:
+        saved = _saved_env_physics(saved_dir)
+        if saved is not None:
+            env = saved[0]
+            physics = physics or saved[1]
+    if env.startswith("point_"):
+        return False
+    physics = physics or "auto"
+    if physics != "auto":
+        return physics == "warp"
+    from envs.ant_maze import warp_available
+    return warp_available()
+
+
+def deterministic_default(args) -> bool:
+    """`--deterministic`'s default: deterministic XLA kernels unless the ant physics is MuJoCo
+    Warp, whose own kernels do not repeat on a GPU either way, so there they would only cost time
+    (about 10 % per iteration on the ant U-maze; docs/training.md, "Reproducibility")."""
+    return not runs_on_warp(args)
+
+
 def main(argv: Optional[list[str]] = None) -> int:
     args = build_parser().parse_args(argv)
     if hasattr(args, "deterministic"):
-        use_deterministic_ops(args.deterministic)
+        on = args.deterministic
+        use_deterministic_ops(deterministic_default(args) if on is None else on)
     if hasattr(args, "compile_cache"):
         use_compile_cache(args.compile_cache)
     try:

@@ -287,8 +287,8 @@ def train_command(exp: Exp, group_dir: str, args, resume: bool,
             cmd += ["--set", s]
     if budget:
         cmd += ["--time-budget", f"{budget:g}"]
-    if not args.deterministic:
-        cmd += ["--no-deterministic"]
+    if args.deterministic is not None:   # else train's default (dscpp_jax.cli.deterministic_default)
+        cmd += ["--deterministic" if args.deterministic else "--no-deterministic"]
     if args.compile_cache:
         cmd += ["--compile-cache", args.compile_cache]
     return cmd
@@ -1238,8 +1238,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--report-only", action="store_true",
                    help="train nothing: figures, CSVs and README from the runs that exist")
     p.add_argument("--dry-run", action="store_true", help="print the train commands only")
-    p.add_argument("--deterministic", action=argparse.BooleanOptionalAction, default=True,
-                   help="deterministic GPU kernels in train and in the evaluations here")
+    p.add_argument("--deterministic", action=argparse.BooleanOptionalAction, default=None,
+                   help="deterministic GPU kernels in train and in the evaluations here (default: "
+                        "as train, on except with MuJoCo Warp physics)")
     p.add_argument("--compile-cache", default=None, metavar="DIR")
     p.add_argument("--export-lean", default=None, metavar="DIR",
                    help="at the end, copy what results keep of every run under --runs-root to "
@@ -1360,8 +1361,9 @@ def main(argv: Optional[list] = None) -> int:
     # and without taking 75 % of every visible GPU up front: the evaluations are small, and train
     # calls of other jobs on the host may be using those GPUs
     os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
-    from dscpp_jax.cli import use_compile_cache, use_deterministic_ops
-    use_deterministic_ops(args.deterministic)
+    from dscpp_jax.cli import deterministic_default, use_compile_cache, use_deterministic_ops
+    use_deterministic_ops(deterministic_default(argparse.Namespace(env="u_maze", set=args.set))
+                          if args.deterministic is None else args.deterministic)
     use_compile_cache(args.compile_cache)
     os.makedirs(args.out, exist_ok=True)
     # the report covers every figure whose runs exist, whichever this call trained

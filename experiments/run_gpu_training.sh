@@ -15,7 +15,8 @@
 # ARGS_<TAG> to the fresh runs of jobs tagged TAG (e.g. ARGS_b1k="--set td3_batch_size=1024");
 # a tagged job's run and results are named <env>_<algo>_<tag>; BUDGET_<TAG> overrides BUDGET for it.
 # Stopped by a signal (e.g. `timeout`), it still packs results.tgz from what the jobs have written.
-# DETERMINISTIC=0 passes --no-deterministic (faster GPU kernels; a seed no longer repeats exactly).
+# DETERMINISTIC=1 passes --deterministic, 0 --no-deterministic; unset, train and eval choose
+# (deterministic XLA kernels except with MuJoCo Warp physics, which does not repeat either way).
 # Compiled programs are kept in $DSCPP_JAX_COMPILE_CACHE (default runs/xla_cache).
 set -uo pipefail
 ENV=${ENV:-u_maze}
@@ -25,10 +26,11 @@ ALGOS=${ALGOS:-"mb_dscpp mf_dscpp"}
 EXTRA=${EXTRA:-}
 EVAL_EPISODES=${EVAL_EPISODES:-100}  # 100: a standard error of about 0.03 at 0.9 (32 gave about 0.05)
 SERIAL=${SERIAL:-0}
-DET_ARG=--deterministic
+DET_ARG=
 # compiled programs next to the runs, so a resumed chunk or an evaluation loads them
 export DSCPP_JAX_COMPILE_CACHE=${DSCPP_JAX_COMPILE_CACHE:-$PWD/runs/xla_cache}
-[ "${DETERMINISTIC:-1}" = 0 ] && DET_ARG=--no-deterministic
+[ "${DETERMINISTIC:-}" = 1 ] && DET_ARG=--deterministic
+[ "${DETERMINISTIC:-}" = 0 ] && DET_ARG=--no-deterministic
 if [ -z "${JOBS:-}" ]; then
   JOBS=""
   for a in $ALGOS; do JOBS="$JOBS 0:$ENV:$a"; done

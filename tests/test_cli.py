@@ -235,9 +235,45 @@ def test_deterministic_switch_sets_xla_flags_only_before_jax_uses_a_device(monke
     monkeypatch.setattr(xla_bridge, "backends_are_initialized", lambda: True)
     assert not use_deterministic_ops(True) and os.environ["XLA_FLAGS"] == ""   # too late: unchanged
     p = build_parser()
-    assert p.parse_args(["train"]).deterministic is True               # the default
+    assert p.parse_args(["train"]).deterministic is None               # the default: chosen
+    assert p.parse_args(["train", "--deterministic"]).deterministic is True
     assert p.parse_args(["train", "--no-deterministic"]).deterministic is False
     assert p.parse_args(["eval", "--run", "r", "--no-deterministic"]).deterministic is False
+
+
+def test_deterministic_default_follows_the_physics(tmp_path, monkeypatch):
+    """Deterministic XLA kernels by default, except where the ant runs on MuJoCo Warp (which does
+    not repeat either way): from --physics, --set physics=, or the saved config of --resume and
+    --run; "auto" means Warp where warp-lang is installed. Point-mass twins stay deterministic."""
+    import envs.ant_maze
+    from dscpp_jax.cli import build_parser, deterministic_default
+    p = build_parser()
+
+    def default(*argv):
+        return deterministic_default(p.parse_args(list(argv)))
+
+    assert default("train", "--env", "point_u_maze", "--physics", "warp")
+    assert default("train", "--env", "u_maze", "--physics", "jax")
+    assert not default("train", "--env", "u_maze", "--physics", "warp")
+    assert not default("train", "--env", "u_maze", "--set", "physics=warp")
+    assert default("train", "--env", "u_maze", "--physics", "jax", "--set", "physics=warp")
+    for installed in (True, False):
+        monkeypatch.setattr(envs.ant_maze, "warp_available", lambda: installed)
+        assert default("train", "--env", "u_maze") is not installed          # physics auto
+        assert default("train", "--env", "four_rooms", "--physics", "auto") is not installed
+    for physics, det in (("warp", False), ("jax", True)):
+        run = tmp_path / physics
+        run.mkdir()
+        (run / "config.json").write_text(json.dumps({"config": {"env": "u_maze",
+                                                                "physics": physics}}))
+        assert default("eval", "--run", str(run)) is det
+        assert default("video", "--run", str(run)) is det
+        assert default("train", "--resume", str(run)) is det
+    group = tmp_path / "group"
+    group.mkdir()
+    (group / "group.json").write_text(json.dumps({"config": {"env": "medium", "physics": "warp"}}))
+    assert not default("train", "--resume", str(group))
+    assert default("train", "--resume", str(group), "--physics", "jax")
 
 
 def test_compile_cache_stores_programs_and_a_second_process_loads_them(tmp_path):
