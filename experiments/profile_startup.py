@@ -1,0 +1,132 @@
+"""Where a training run's first seconds go: the process start before the first iteration ends.
+
+Times, in one fresh process and in the order `dscpp_jax.cli train` does them: the imports, the
+accelerator's start, building the env, `init`, tracing and lowering `train_step`, compiling it
+(a cache hit when the persistent XLA cache holds it), Warp's kernel build or load, and the first
+iteration. Run it twice on the same cache directory to see a cold and a warm start:
+
+    python experiments/profile_startup.py --env u_maze --algo mb_dscpp --out cold.json
+    python experiments/profile_startup.py --env u_maze --algo mb_dscpp --out warm.json
+
+Prints a table and writes JSON (`--out`). `--set field=value` as in `train`.
+"""
+from __future__ import annotations
+
+import time
+
+T_PROCESS = time.time()
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import os  # noqa: E402
+import sys  # noqa: E402
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+
+def main(argv=None) -> dict:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--env", default="u_maze")
+    p.add_argument("--algo", default="mb_dscpp")
+    p.add_argument("--preset", default="fast")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE")
+    p.add_argument("--compile-cache", default=None,
+                   help="persistent XLA cache (default: as train: $DSCPP_JAX_COMPILE_CACHE, ...)")
+    p.add_argument("--deterministic", action=argparse.BooleanOptionalAction, default=None,
+                   help="deterministic XLA GPU kernels; default as `train` chooses (part of the "
+                        "compile cache's key: profile what `train` will load)")
+    p.add_argument("--cprofile", default=None, metavar="FILE",
+                   help="also run cProfile from the accelerator's start on and dump its stats here")
+    p.add_argument("--out", default=None, help="write the timings as JSON here")
+    args = p.parse_args(argv)
+
+    phases: dict[str, float] = {}
+    t = time.time()
+    phases["interpreter to script"] = t - T_PROCESS   # ~0 unless the caller measures from exec
+
+    import jax
+    from dscpp_jax import preset
+    from dscpp_jax import trainer as T
+    from dscpp_jax.cli import deterministic_default, use_compile_cache, use_deterministic_ops
+    from dscpp_jax.config import parse_value
+    phases["imports"] = time.time() - t
+    deterministic = use_deterministic_ops(deterministic_default(args) if args.deterministic is None
+                                          else args.deterministic)
+    prof = None
+    if args.cprofile:
+        import cProfile
+        prof = cProfile.Profile()
+        prof.enable()
+
+    t = time.time()
+    cache = use_compile_cache(args.compile_cache)
+    devices = jax.devices()
+    phases["accelerator start (jax.devices)"] = time.time() - t
+
+    overrides = {}
+    for item in args.set:
+        if "=" not in item:
+            raise SystemExit(f"--set {item!r}: write FIELD=VALUE")
+        k, v = item.split("=", 1)
+        overrides[k] = parse_value(k, v)
+    cfg = preset(args.preset, env=args.env, algo=args.algo, seed=args.seed, **overrides)
+    cfg = T.resolve_physics(cfg.validate())
+
+    t = time.time()
+    T.make_env(cfg)
+    phases["env build"] = time.time() - t
+
+    t = time.time()
+    state = T.init(jax.random.PRNGKey(cfg.seed), cfg)
+    jax.block_until_ready(state)
+    phases["init (compile or cache load, run)"] = time.time() - t
+
+    t = time.time()
+    prewarm = T.prewarm_physics(cfg)
+    traced = T.train_step.trace(state)
+    phases["train_step: trace"] = time.time() - t
+    t = time.time()
+    lowered = traced.lower()
+    phases["train_step: lower"] = time.time() - t
+    t = time.time()
+    compiled = lowered.compile()
+    phases["train_step: compile or cache load"] = time.time() - t
+    t = time.time()
+    if prewarm is not None:
+        prewarm.join()
+    phases["Warp kernels (left after the compile)"] = time.time() - t
+
+    t = time.time()
+    state, m = compiled(state)
+    jax.block_until_ready(m)
+    phases["first iteration (run)"] = time.time() - t
+    t = time.time()
+    state, m = compiled(state)
+    jax.block_until_ready(m)
+    phases["second iteration (run)"] = time.time() - t
+
+    total = time.time() - T_PROCESS
+    if prof is not None:
+        prof.disable()
+        prof.dump_stats(args.cprofile)
+    out = {"env": args.env, "algo": args.algo, "preset": args.preset, "physics": cfg.physics,
+           "deterministic_ops": deterministic,
+           "backend": jax.default_backend(), "device": str(devices[0].device_kind),
+           "jax": jax.__version__, "compile_cache": cache,
+           "phases_s": {k: round(v, 3) for k, v in phases.items()},
+           "process to end of second iteration_s": round(total, 3)}
+    w = max(len(k) for k in phases)
+    print(f"{args.env} {args.algo} ({cfg.physics} physics, {out['device']}, cache {cache})")
+    for k, v in phases.items():
+        print(f"  {k:<{w}}  {v:7.2f} s")
+    print(f"  {'process start to end of second iteration':<{w}}  {total:7.2f} s")
+    if args.out:
+        os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+        with open(args.out, "w") as f:
+            json.dump(out, f, indent=1)
+    return out
+
+
+if __name__ == "__main__":
+    main()
