@@ -124,14 +124,16 @@ def main(argv=None) -> int:
     p.add_argument("--small", action="store_true", help="tiny sizes (CPU smoke test)")
     p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                    help="override a Config field (repeatable)")
-    p.add_argument("--no-deterministic", action="store_true",
-                   help="without --xla_gpu_deterministic_ops (the training CLI's default is on)")
+    p.add_argument("--deterministic", action=argparse.BooleanOptionalAction, default=None,
+                   help="--xla_gpu_deterministic_ops on or off (default: as `train` chooses, off "
+                        "where the ant physics is MuJoCo Warp)")
     p.add_argument("--out", default=None,
                    help="JSON path (default experiments/results/bench_seeds_<device>.json)")
     args = p.parse_args(argv)
 
-    from dscpp_jax.cli import _overrides, use_deterministic_ops
-    det = use_deterministic_ops(not args.no_deterministic)
+    from dscpp_jax.cli import _overrides, deterministic_default, use_deterministic_ops
+    det = use_deterministic_ops(deterministic_default(args) if args.deterministic is None
+                                else args.deterministic)
     import jax
 
     from dscpp_jax.config import preset
