@@ -8,7 +8,8 @@ iteration. Run it twice on the same cache directory to see a cold and a warm sta
     python experiments/profile_startup.py --env u_maze --algo mb_dscpp --out cold.json
     python experiments/profile_startup.py --env u_maze --algo mb_dscpp --out warm.json
 
-Prints a table and writes JSON (`--out`). `--set field=value` as in `train`.
+Prints a table and writes JSON (`--out`). `--set field=value` as in `train`; `--cprofile DIR`
+also profiles each phase (after the imports) into DIR/<phase>.prof for `python -m pstats`.
 """
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ import time
 T_PROCESS = time.time()
 
 import argparse  # noqa: E402
+import contextlib  # noqa: E402
 import json  # noqa: E402
 import os  # noqa: E402
 import sys  # noqa: E402
@@ -36,8 +38,11 @@ def main(argv=None) -> dict:
     p.add_argument("--deterministic", action=argparse.BooleanOptionalAction, default=None,
                    help="deterministic XLA GPU kernels; default as `train` chooses (part of the "
                         "compile cache's key: profile what `train` will load)")
-    p.add_argument("--cprofile", default=None, metavar="FILE",
-                   help="also run cProfile from the accelerator's start on and dump its stats here")
+    p.add_argument("--cprofile", default=None, metavar="DIR",
+                   help="also profile each phase after the imports with cProfile (main thread) "
+                        "into DIR/<phase>.prof")
+    p.add_argument("--until", default=None, choices=("init", "lower"),
+                   help="stop after this phase (e.g. to profile the start-up without compiling)")
     p.add_argument("--out", default=None, help="write the timings as JSON here")
     args = p.parse_args(argv)
 
@@ -53,16 +58,28 @@ def main(argv=None) -> dict:
     phases["imports"] = time.time() - t
     deterministic = use_deterministic_ops(deterministic_default(args) if args.deterministic is None
                                           else args.deterministic)
-    prof = None
     if args.cprofile:
-        import cProfile
-        prof = cProfile.Profile()
-        prof.enable()
+        os.makedirs(args.cprofile, exist_ok=True)
 
-    t = time.time()
-    cache = use_compile_cache(args.compile_cache)
-    devices = jax.devices()
-    phases["accelerator start (jax.devices)"] = time.time() - t
+    @contextlib.contextmanager
+    def phase(name: str):
+        """Time one phase (and with --cprofile, profile it into DIR/<phase>.prof)."""
+        prof = None
+        if args.cprofile:
+            import cProfile
+            prof = cProfile.Profile()
+            prof.enable()
+        t0 = time.time()
+        yield
+        phases[name] = time.time() - t0
+        if prof is not None:
+            prof.disable()
+            slug = "".join(c if c.isalnum() else "_" for c in name.split(" (")[0]).strip("_")
+            prof.dump_stats(os.path.join(args.cprofile, f"{slug}.prof"))
+
+    with phase("accelerator start (jax.devices)"):
+        cache = use_compile_cache(args.compile_cache)
+        devices = jax.devices()
 
     overrides = {}
     for item in args.set:
@@ -73,59 +90,56 @@ def main(argv=None) -> dict:
     cfg = preset(args.preset, env=args.env, algo=args.algo, seed=args.seed, **overrides)
     cfg = T.resolve_physics(cfg.validate())
 
-    t = time.time()
-    T.make_env(cfg)
-    phases["env build"] = time.time() - t
-
-    t = time.time()
-    state = T.init(jax.random.PRNGKey(cfg.seed), cfg)
-    jax.block_until_ready(state)
-    phases["init (compile or cache load, run)"] = time.time() - t
-
-    t = time.time()
-    prewarm = T.prewarm_physics(cfg)
-    traced = T.train_step.trace(state)
-    phases["train_step: trace"] = time.time() - t
-    t = time.time()
-    lowered = traced.lower()
-    phases["train_step: lower"] = time.time() - t
-    t = time.time()
-    compiled = lowered.compile()
-    phases["train_step: compile or cache load"] = time.time() - t
-    t = time.time()
-    if prewarm is not None:
-        prewarm.join()
-    phases["Warp kernels (left after the compile)"] = time.time() - t
-
-    t = time.time()
-    state, m = compiled(state)
-    jax.block_until_ready(m)
-    phases["first iteration (run)"] = time.time() - t
-    t = time.time()
-    state, m = compiled(state)
-    jax.block_until_ready(m)
-    phases["second iteration (run)"] = time.time() - t
+    with phase("env build"):
+        T.make_env(cfg)
+    with phase("init (compile or cache load, run)"):
+        state = T.init(jax.random.PRNGKey(cfg.seed), cfg)
+        jax.block_until_ready(state)
+    if args.until != "init":
+        _step_phases(args, phase, T, cfg, state)
 
     total = time.time() - T_PROCESS
-    if prof is not None:
-        prof.disable()
-        prof.dump_stats(args.cprofile)
+    last = "second iteration" if args.until is None else f"train_step {args.until}" \
+        if args.until == "lower" else args.until
     out = {"env": args.env, "algo": args.algo, "preset": args.preset, "physics": cfg.physics,
            "deterministic_ops": deterministic,
            "backend": jax.default_backend(), "device": str(devices[0].device_kind),
            "jax": jax.__version__, "compile_cache": cache,
            "phases_s": {k: round(v, 3) for k, v in phases.items()},
-           "process to end of second iteration_s": round(total, 3)}
+           f"process to end of {last}_s": round(total, 3)}
     w = max(len(k) for k in phases)
     print(f"{args.env} {args.algo} ({cfg.physics} physics, {out['device']}, cache {cache})")
     for k, v in phases.items():
         print(f"  {k:<{w}}  {v:7.2f} s")
-    print(f"  {'process start to end of second iteration':<{w}}  {total:7.2f} s")
+    print(f"  {'process start to end of ' + last:<{w}}  {total:7.2f} s")
     if args.out:
         os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
         with open(args.out, "w") as f:
             json.dump(out, f, indent=1)
     return out
+
+
+def _step_phases(args, phase, T, cfg, state) -> None:
+    """train_step's trace, lower and compile, Warp's kernels, and two iterations (each timed)."""
+    import jax
+    with phase("train_step: trace"):
+        prewarm = T.prewarm_physics(cfg)
+        traced = T.train_step.trace(state)
+    with phase("train_step: lower"):
+        lowered = traced.lower()
+    if args.until == "lower":
+        return
+    with phase("train_step: compile or cache load"):
+        compiled = lowered.compile()
+    with phase("Warp kernels (left after the compile)"):
+        if prewarm is not None:
+            prewarm.join()
+    with phase("first iteration (run)"):
+        state, m = compiled(state)
+        jax.block_until_ready(m)
+    with phase("second iteration (run)"):
+        state, m = compiled(state)
+        jax.block_until_ready(m)
 
 
 if __name__ == "__main__":

@@ -43,3 +43,24 @@ def test_inband_window_follows_the_config(tmp_path):
     (d / "config.json").write_text(json.dumps(
         {"config": {"inband_eval_envs": 32, "inband_eval_window": 64}}))
     assert ttt.inband_window(str(d)) == 64
+
+
+def test_profile_startup_times_every_phase_up_to_the_one_asked(tmp_path):
+    """experiments/profile_startup.py on the point twin: each phase up to --until timed, the JSON
+    written, and with --cprofile one stats file per phase after the imports."""
+    import pstats
+    sys.path.insert(0, os.path.join(ROOT, "experiments"))
+    import profile_startup
+    sys.path.pop(0)
+    out, prof = str(tmp_path / "p.json"), str(tmp_path / "prof")
+    res = profile_startup.main(["--env", "point_u_maze", "--algo", "td3_her", "--until", "lower",
+                                "--set", "num_envs=2", "--cprofile", prof, "--out", out])
+    phases = list(res["phases_s"])
+    assert phases == ["interpreter to script", "imports", "accelerator start (jax.devices)",
+                      "env build", "init (compile or cache load, run)", "train_step: trace",
+                      "train_step: lower"]
+    assert all(v >= 0 for v in res["phases_s"].values())
+    assert json.load(open(out))["phases_s"] == res["phases_s"]
+    assert sorted(os.listdir(prof)) == ["accelerator_start.prof", "env_build.prof", "init.prof",
+                                        "train_step__lower.prof", "train_step__trace.prof"]
+    pstats.Stats(os.path.join(prof, "init.prof"))   # readable
