@@ -860,11 +860,16 @@ def deterministic_default(args) -> bool:
     return not runs_on_warp(args)
 
 
+def deterministic_choice(args) -> bool:
+    """`--deterministic` / `--no-deterministic` where given, else `deterministic_default`."""
+    on = getattr(args, "deterministic", None)
+    return deterministic_default(args) if on is None else on
+
+
 def main(argv: Optional[list[str]] = None) -> int:
     args = build_parser().parse_args(argv)
     if hasattr(args, "deterministic"):
-        on = args.deterministic
-        use_deterministic_ops(deterministic_default(args) if on is None else on)
+        use_deterministic_ops(deterministic_choice(args))
     if hasattr(args, "compile_cache"):
         use_compile_cache(args.compile_cache)
     try:

@@ -131,9 +131,8 @@ def main(argv=None) -> int:
                    help="JSON path (default experiments/results/bench_seeds_<device>.json)")
     args = p.parse_args(argv)
 
-    from dscpp_jax.cli import _overrides, deterministic_default, use_deterministic_ops
-    det = use_deterministic_ops(deterministic_default(args) if args.deterministic is None
-                                else args.deterministic)
+    from dscpp_jax.cli import _overrides, deterministic_choice, use_deterministic_ops
+    det = use_deterministic_ops(deterministic_choice(args))
     import jax
 
     from dscpp_jax.config import preset

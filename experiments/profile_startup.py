@@ -53,11 +53,10 @@ def main(argv=None) -> dict:
     import jax
     from dscpp_jax import preset
     from dscpp_jax import trainer as T
-    from dscpp_jax.cli import deterministic_default, use_compile_cache, use_deterministic_ops
+    from dscpp_jax.cli import deterministic_choice, use_compile_cache, use_deterministic_ops
     from dscpp_jax.config import parse_value
     phases["imports"] = time.time() - t
-    deterministic = use_deterministic_ops(deterministic_default(args) if args.deterministic is None
-                                          else args.deterministic)
+    deterministic = use_deterministic_ops(deterministic_choice(args))
     if args.cprofile:
         os.makedirs(args.cprofile, exist_ok=True)
 

@@ -1361,9 +1361,9 @@ def main(argv: Optional[list] = None) -> int:
     # and without taking 75 % of every visible GPU up front: the evaluations are small, and train
     # calls of other jobs on the host may be using those GPUs
     os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
-    from dscpp_jax.cli import deterministic_default, use_compile_cache, use_deterministic_ops
-    use_deterministic_ops(deterministic_default(argparse.Namespace(env="u_maze", set=args.set))
-                          if args.deterministic is None else args.deterministic)
+    from dscpp_jax.cli import deterministic_choice, use_compile_cache, use_deterministic_ops
+    use_deterministic_ops(deterministic_choice(argparse.Namespace(
+        env="u_maze", set=args.set, deterministic=args.deterministic)))
     use_compile_cache(args.compile_cache)
     os.makedirs(args.out, exist_ok=True)
     # the report covers every figure whose runs exist, whichever this call trained
