@@ -738,7 +738,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="at the end, write curves/trajectory/classifier plots to RUN_DIR/plots")
     det_help = ("deterministic XLA GPU kernels, so one seed gives the same run twice on a GPU with "
                 "--physics jax (1.1-1.3x the time per iteration on the ant). Default: on, except "
-                "with MuJoCo Warp physics (the GPU default), which does not repeat either way")
+                "for model-free learners with MuJoCo Warp physics (the GPU default), which does "
+                "not repeat either way; model-based learners keep it, since it also stops XLA "
+                "from autotuning their MPC at every compile")
     t.add_argument("--deterministic", action=argparse.BooleanOptionalAction, default=None,
                    help=det_help)
     cache_help = ("directory of compiled programs reused across runs, resumes and evaluations "
@@ -813,17 +815,27 @@ def _seconds(text: str) -> float:
     return v
 
 
-def _saved_env_physics(run_dir: str) -> Optional[tuple]:
-    """(env, physics) from a run's or a group's saved config, without touching JAX; None when
-    there is none to read."""
+def _saved_run(run_dir: str) -> Optional[tuple]:
+    """(config as saved, number of seeds) from a run's config.json or a group's group.json,
+    without touching JAX; None when there is none to read."""
     for name in ("config.json", "group.json"):
         try:
             with open(os.path.join(run_dir, name)) as f:
-                c = json.load(f)["config"]
-            return c.get("env", ""), c.get("physics", "auto")
+                saved = json.load(f)
+            c = saved["config"]
+            n = len(saved.get("seeds", [0])) if name == "group.json" else 1
+            return dict(c), n
         except (OSError, ValueError, KeyError, TypeError):
             continue
     return None
+
+
+def _saved_env_physics(run_dir: str) -> Optional[tuple]:
+    """(env, physics) from a run's or a group's saved config; None when there is none."""
+    saved = _saved_run(run_dir)
+    if saved is None:
+        return None
+    return saved[0].get("env", ""), saved[0].get("physics", "auto")
 
 
 def runs_on_warp(args) -> bool:
@@ -853,11 +865,29 @@ def runs_on_warp(args) -> bool:
     return warp_available()
 
 
+def _model_based(args) -> bool:
+    """Whether the command's algorithm plans with a dynamics model (MB-DSC++, MB flat, MB flat +
+    value): `--algo`, else the saved config of `--resume` / `--run`."""
+    from dscpp_jax.config import MODEL_BASED_ALGOS
+    algo = getattr(args, "algo", None)
+    saved_dir = getattr(args, "resume", None) or getattr(args, "run", None)
+    if saved_dir:
+        saved = _saved_run(saved_dir)
+        if saved is not None:
+            algo = saved[0].get("algo", algo)
+    return algo in MODEL_BASED_ALGOS
+
+
 def deterministic_default(args) -> bool:
-    """`--deterministic`'s default: deterministic XLA kernels unless the ant physics is MuJoCo
-    Warp, whose own kernels do not repeat on a GPU either way, so there they would only cost time
-    (about 10 % per iteration on the ant U-maze; docs/training.md, "Reproducibility")."""
-    return not runs_on_warp(args)
+    """`--deterministic`'s default: deterministic XLA kernels, except for model-free learners
+    where the ant physics is MuJoCo Warp. Warp's own kernels do not repeat on a GPU either way,
+    so there the switch buys no repeatability; for the model-free learners it would cost time
+    per iteration, while for the model-based ones it keeps the compile short: the switch also
+    turns XLA's autotuning off, and without it the MPC's programs are autotuned at every cold
+    compile (one H200: 44 s against 20 s for one MB-DSC++ seed, 368 s against 21 s for a
+    16-seed group, for about 3-10 % less time per iteration; docs/training.md,
+    "Reproducibility")."""
+    return not runs_on_warp(args) or _model_based(args)
 
 
 def deterministic_choice(args) -> bool:

@@ -107,6 +107,17 @@ def table(records: list) -> str:
     return "\n".join(lines)
 
 
+def as_train(args) -> argparse.Namespace:
+    """The `train` command whose `--deterministic` default the benchmark takes: that of its first
+    model-based algorithm (else its first algorithm), set once, before JAX starts, for every
+    algorithm and group size of the run."""
+    from dscpp_jax.config import MODEL_BASED_ALGOS
+    algos = [a.strip() for a in args.algos.split(",") if a.strip()]
+    algo = next((a for a in algos if a in MODEL_BASED_ALGOS), algos[0] if algos else None)
+    return argparse.Namespace(env=args.env, set=args.set, physics=None, algo=algo,
+                              deterministic=args.deterministic)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -125,14 +136,15 @@ def main(argv=None) -> int:
     p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                    help="override a Config field (repeatable)")
     p.add_argument("--deterministic", action=argparse.BooleanOptionalAction, default=None,
-                   help="--xla_gpu_deterministic_ops on or off (default: as `train` chooses, off "
-                        "where the ant physics is MuJoCo Warp)")
+                   help="--xla_gpu_deterministic_ops on or off (default: as `train` chooses: "
+                        "off where the ant physics is MuJoCo Warp, except with a model-based "
+                        "algorithm among --algos)")
     p.add_argument("--out", default=None,
                    help="JSON path (default experiments/results/bench_seeds_<device>.json)")
     args = p.parse_args(argv)
 
     from dscpp_jax.cli import _overrides, deterministic_choice, use_deterministic_ops
-    det = use_deterministic_ops(deterministic_choice(args))
+    det = use_deterministic_ops(deterministic_choice(as_train(args)))
     import jax
 
     from dscpp_jax.config import preset

@@ -1240,7 +1240,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--dry-run", action="store_true", help="print the train commands only")
     p.add_argument("--deterministic", action=argparse.BooleanOptionalAction, default=None,
                    help="deterministic GPU kernels in train and in the evaluations here (default: "
-                        "as train, on except with MuJoCo Warp physics)")
+                        "as train: on, except for model-free learners on MuJoCo Warp physics)")
     p.add_argument("--compile-cache", default=None, metavar="DIR")
     p.add_argument("--export-lean", default=None, metavar="DIR",
                    help="at the end, copy what results keep of every run under --runs-root to "
@@ -1362,8 +1362,8 @@ def main(argv: Optional[list] = None) -> int:
     # calls of other jobs on the host may be using those GPUs
     os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
     from dscpp_jax.cli import deterministic_choice, use_compile_cache, use_deterministic_ops
-    use_deterministic_ops(deterministic_choice(argparse.Namespace(
-        env="u_maze", set=args.set, deterministic=args.deterministic)))
+    use_deterministic_ops(deterministic_choice(argparse.Namespace(   # evaluates Figure 4's learner
+        env="u_maze", set=args.set, algo=args.fig4_algo, deterministic=args.deterministic)))
     use_compile_cache(args.compile_cache)
     os.makedirs(args.out, exist_ok=True)
     # the report covers every figure whose runs exist, whichever this call trained

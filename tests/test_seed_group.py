@@ -242,6 +242,29 @@ def test_bench_seeds_smoke(ref, tmp_path):
         bench_seeds.main(["--devices-list", "1,3", "--out", out])
 
 
+def test_bench_seeds_deterministic_default_is_train_s(monkeypatch):
+    """The benchmark sets the switch once for all its algorithms, as `train` would for the first
+    model-based one among them (else the first)."""
+    import argparse
+    import envs.ant_maze
+    from dscpp_jax.cli import deterministic_choice
+    bench_seeds = _experiment("bench_seeds")
+    monkeypatch.setattr(envs.ant_maze, "warp_available", lambda: True)
+
+    def det(*argv):
+        p = argparse.ArgumentParser()
+        p.add_argument("--env", default="u_maze")
+        p.add_argument("--algos", default="mf_dscpp,mb_dscpp")
+        p.add_argument("--set", action="append", default=[])
+        p.add_argument("--deterministic", action=argparse.BooleanOptionalAction, default=None)
+        return deterministic_choice(bench_seeds.as_train(p.parse_args(list(argv))))
+
+    assert det()                                        # MB-DSC++ among them, on Warp: on
+    assert not det("--algos", "mf_dscpp")               # model-free on Warp: off
+    assert not det("--no-deterministic")
+    assert det("--env", "point_u_maze", "--algos", "mf_dscpp")   # no Warp: on
+
+
 def test_profile_seed_group_smoke(ref, tmp_path):
     """experiments/profile_seed_group.py on the tiny config: every asked part and variant timed."""
     profile_seed_group = _experiment("profile_seed_group")
