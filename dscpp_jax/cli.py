@@ -815,16 +815,13 @@ def _seconds(text: str) -> float:
     return v
 
 
-def _saved_run(run_dir: str) -> Optional[tuple]:
-    """(config as saved, number of seeds) from a run's config.json or a group's group.json,
-    without touching JAX; None when there is none to read."""
+def _saved_config(run_dir: str) -> Optional[dict]:
+    """The config saved in a run's config.json or a group's group.json, read without touching
+    JAX; None when there is none to read."""
     for name in ("config.json", "group.json"):
         try:
             with open(os.path.join(run_dir, name)) as f:
-                saved = json.load(f)
-            c = saved["config"]
-            n = len(saved.get("seeds", [0])) if name == "group.json" else 1
-            return dict(c), n
+                return dict(json.load(f)["config"])
         except (OSError, ValueError, KeyError, TypeError):
             continue
     return None
@@ -832,10 +829,8 @@ def _saved_run(run_dir: str) -> Optional[tuple]:
 
 def _saved_env_physics(run_dir: str) -> Optional[tuple]:
     """(env, physics) from a run's or a group's saved config; None when there is none."""
-    saved = _saved_run(run_dir)
-    if saved is None:
-        return None
-    return saved[0].get("env", ""), saved[0].get("physics", "auto")
+    c = _saved_config(run_dir)
+    return None if c is None else (c.get("env", ""), c.get("physics", "auto"))
 
 
 def runs_on_warp(args) -> bool:
@@ -872,9 +867,9 @@ def _model_based(args) -> bool:
     algo = getattr(args, "algo", None)
     saved_dir = getattr(args, "resume", None) or getattr(args, "run", None)
     if saved_dir:
-        saved = _saved_run(saved_dir)
+        saved = _saved_config(saved_dir)
         if saved is not None:
-            algo = saved[0].get("algo", algo)
+            algo = saved.get("algo", algo)
     return algo in MODEL_BASED_ALGOS
 
 
