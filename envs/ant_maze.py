@@ -266,7 +266,23 @@ def _warp_model_and_data(mj_model: mujoco.MjModel, d0: mujoco.MjData, cfg: AntCo
     data = mjx.put_data(mj_model, d0, impl="warp",
                         naconmax=cfg.warp_worlds * cfg.warp_contacts_per_world,
                         njmax=cfg.warp_constraints_per_world)
-    return model, data
+    return model, _deterministic_template(data)
+
+
+def _deterministic_template(data):
+    """The Warp data template with its uninitialised buffer set.
+
+    MuJoCo Warp's ``put_data`` allocates ``contact.geomcollisionid`` without setting it, so the
+    template held whatever the allocator left there. The physics never reads those entries before
+    its collision pass writes them, but ``init`` bakes the template into its program as a
+    constant, so the program, and with it the key of JAX's persistent compilation cache, differed
+    in every process: each warm start compiled ``init`` again (5-6 s on a GPU). Zero is what MuJoCo
+    Warp's own reset writes there."""
+    impl = data._impl
+    if not hasattr(impl, "contact__geomcollisionid"):
+        return data
+    return data.replace(_impl=impl.replace(
+        contact__geomcollisionid=jnp.zeros_like(impl.contact__geomcollisionid)))
 
 
 def body_points(m: mujoco.MjModel, geom_xpos, geom_xmat, n: int = 5):

@@ -143,6 +143,38 @@ def test_warp_matches_mujoco_c():
     assert s.pipeline_state._impl.contact__dist.shape == (env.naconmax,)
 
 
+_TEMPLATE_DIGEST = """
+import hashlib, jax, numpy as np, envs
+env = envs.make("u_maze", physics="warp", warp_worlds=4)
+h = hashlib.sha256()
+for leaf in jax.tree_util.tree_leaves((env._data0, env.mjx_model)):
+    if hasattr(leaf, "shape"):
+        h.update(np.asarray(leaf).tobytes())
+print("DIGEST", h.hexdigest())
+"""
+
+
+@pytest.mark.skipif(not warp_available(), reason="warp-lang is not installed")
+def test_warp_template_is_the_same_in_every_process():
+    """The Warp model and data template are baked into `init`'s program as constants, so any
+    byte that differs between processes (MuJoCo Warp's put_data leaves one buffer unset) changes
+    the program's persistent-cache key and makes every warm start compile `init` again."""
+    import os
+    import subprocess
+    import sys
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=root)
+    digests = []
+    for _ in range(2):
+        out = subprocess.run([sys.executable, "-c", _TEMPLATE_DIGEST], capture_output=True,
+                             text=True, env=env, cwd=root, timeout=300)
+        assert out.returncode == 0, out.stderr[-2000:]
+        digests.append([ln for ln in out.stdout.splitlines() if ln.startswith("DIGEST")][0])
+    assert digests[0] == digests[1]
+    impl = get_env("u_maze", "warp")._data0._impl
+    assert not np.any(np.asarray(impl.contact__geomcollisionid))
+
+
 def test_warp_contact_overflow_is_reported():
     """Buffers sized for fewer worlds than are stepped: the dropped contacts are reported."""
     if not warp_available():
