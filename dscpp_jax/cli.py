@@ -827,10 +827,10 @@ def _saved_config(run_dir: str) -> Optional[dict]:
     return None
 
 
-def _saved_env_physics(run_dir: str) -> Optional[tuple]:
-    """(env, physics) from a run's or a group's saved config; None when there is none."""
-    c = _saved_config(run_dir)
-    return None if c is None else (c.get("env", ""), c.get("physics", "auto"))
+def _saved_config_of(args) -> Optional[dict]:
+    """The saved config of the command's `--resume` / `--run` directory; None without one."""
+    saved_dir = getattr(args, "resume", None) or getattr(args, "run", None)
+    return _saved_config(saved_dir) if saved_dir else None
 
 
 def runs_on_warp(args) -> bool:
@@ -845,12 +845,10 @@ def runs_on_warp(args) -> bool:
         if k.strip().replace("-", "_") == "physics":
             physics = v.strip()
     physics = getattr(args, "physics", None) or physics   # as config_from_args: --physics wins
-    saved_dir = getattr(args, "resume", None) or getattr(args, "run", None)
-    if saved_dir:
-        saved = _saved_env_physics(saved_dir)
-        if saved is not None:
-            env = saved[0]
-            physics = physics or saved[1]
+    saved = _saved_config_of(args)
+    if saved is not None:
+        env = saved.get("env", "")
+        physics = physics or saved.get("physics", "auto")
     if env.startswith("point_"):
         return False
     physics = physics or "auto"
@@ -865,11 +863,9 @@ def _model_based(args) -> bool:
     value): `--algo`, else the saved config of `--resume` / `--run`."""
     from dscpp_jax.config import MODEL_BASED_ALGOS
     algo = getattr(args, "algo", None)
-    saved_dir = getattr(args, "resume", None) or getattr(args, "run", None)
-    if saved_dir:
-        saved = _saved_config(saved_dir)
-        if saved is not None:
-            algo = saved.get("algo", algo)
+    saved = _saved_config_of(args)
+    if saved is not None:
+        algo = saved.get("algo", algo)
     return algo in MODEL_BASED_ALGOS
 
 
