@@ -192,14 +192,22 @@ def replay_size(buf: Replay) -> jax.Array:
     return jnp.sum(buf.valid, dtype=jnp.int32)
 
 
-def replay_sample_index(buf: Replay, key: jax.Array, n: int) -> Tuple[jax.Array, jax.Array]:
+def replay_valid_counts(buf: Replay) -> jax.Array:
+    """Running count of the valid entries in row-major order, ``(capacity,)`` int32: what
+    :func:`replay_sample_index` searches (compute it once for many draws from one buffer)."""
+    return jnp.cumsum(buf.valid.reshape(-1), dtype=jnp.int32)
+
+
+def replay_sample_index(buf: Replay, key: jax.Array, n: int,
+                        counts: Optional[jax.Array] = None) -> Tuple[jax.Array, jax.Array]:
     """``n`` (row, env) indices drawn uniformly, with replacement, from the valid entries.
 
     Exact: the k-th valid entry (k uniform in [0, size)) is found by a search in the running count
-    of valid entries. On an empty buffer every index is (0, 0); check :func:`replay_size` first.
+    of valid entries (``counts``: :func:`replay_valid_counts` of ``buf``, computed here if not
+    given). On an empty buffer every index is (0, 0); check :func:`replay_size` first.
     """
     flat = buf.valid.reshape(-1)
-    counts = jnp.cumsum(flat, dtype=jnp.int32)
+    counts = replay_valid_counts(buf) if counts is None else counts
     total = counts[-1]
     u = jax.random.randint(key, (n,), 0, jnp.maximum(total, 1), dtype=jnp.int32)
     idx = jnp.searchsorted(counts, u, side="right").astype(jnp.int32)

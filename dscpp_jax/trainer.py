@@ -652,7 +652,8 @@ def _learn(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[str
     k_td3, k_dyn, k_pre = jax.random.split(key, 3)
     metrics: Dict[str, jax.Array] = {}
     if config.shared_critic:
-        td3, tm = td3_updates(tcfg, state.td3, state.replay, k_td3, config.td3_updates,
+        td3, tm = td3_updates(tcfg, state.td3, td3_buffer(config, state.replay), k_td3,
+                              config.td3_updates,
                               td3_sample_fn(config, env), sample_block=config.td3_sample_block,
                               seed_axis=seed_axis)
     else:
@@ -787,10 +788,22 @@ def train_step_group_impl(states: TrainState) -> Tuple[TrainState, Dict[str, jax
 # ------------------------------------------------------------------------------------------------
 # Thin adapters over the component modules (one place to follow their signatures)
 # ------------------------------------------------------------------------------------------------
+def _her_max_segment(config: Config) -> int:
+    return config.option_timeout if config.hierarchical else config.episode_length
+
+
+def td3_buffer(config: Config, replay: Replay) -> Any:
+    """The replay as TD3's minibatches are drawn from it in one learning phase: indexed once
+    (``her.her_index``), so that each draw of ``td3_sample_fn`` is a few gathers."""
+    from dscpp_jax.her import her_index
+    return her_index(replay, _her_max_segment(config))
+
+
 def td3_sample_fn(config: Config, env: Any = None) -> Any:
     """``sample_fn(key, replay, n) -> Transition`` for TD3: HER relabelling within an option's
-    segment (the episode's for the flat algorithms). ``env`` is unused (kept for callers)."""
-    max_seg = config.option_timeout if config.hierarchical else config.episode_length
+    segment (the episode's for the flat algorithms). ``replay`` is a Replay or its
+    :func:`td3_buffer` (the same draws, cheaper). ``env`` is unused (kept for callers)."""
+    max_seg = _her_max_segment(config)
 
     def sample_fn(k, buf, n):
         return _her_sample(k, buf, n, strategy=config.her_strategy,

@@ -88,7 +88,7 @@ def profile(env_name: str, algo: str, B: int, overrides: dict, reps: int,
     out["td3_sample_block"] = cfg.td3_sample_block
     for blk in sorted({cfg.td3_sample_block, *td3_blocks}):
         fn = jax.jit(lambda td3, rep, kk, blk=blk: td3_updates(
-            tcfg, td3, rep, kk, cfg.td3_updates, sample, sample_block=blk))
+            tcfg, td3, T.td3_buffer(cfg, rep), kk, cfg.td3_updates, sample, sample_block=blk))
         t = _time(fn, post.td3, post.replay, k, reps=reps)
         out.setdefault("td3_s_by_sample_block", {})[str(blk)] = t
         if blk == cfg.td3_sample_block:

@@ -4,7 +4,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from dscpp_jax.her import her_relabel, her_sample
+from dscpp_jax.her import her_index, her_relabel, her_sample, segment_last_offset
 from dscpp_jax.replay import (TrajStep, replay_add, replay_add_many, replay_flatten, replay_init,
                               replay_sample, replay_sample_index, replay_size)
 
@@ -215,3 +215,32 @@ def test_her_sample_draws_valid_entries_and_consistent_rewards():
         tr2 = her_sample(jax.random.key(3), buf, 512, "future", 0.8, 200)  # one op-by-op pass
     for a, b in zip(jax.tree_util.tree_leaves(tr), jax.tree_util.tree_leaves(tr2)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+@pytest.mark.parametrize("steps,max_segment", [(9, 200), (61, 200), (61, 4), (20, 7)])
+def test_her_index_equals_the_windowed_search(steps, max_segment):
+    """her_index's once-per-buffer segment ends equal segment_last_offset at every valid entry
+    (partly filled ring, wrap-around, invalid steps inside segments, the window), and sampling
+    from the indexed buffer draws exactly what sampling from the replay draws."""
+    rng = np.random.default_rng(100 + steps + max_segment)
+    num_envs, capacity = 3, 60
+    buf = _fill(_history(rng, steps, num_envs), capacity, num_envs)
+    index = jax.jit(her_index, static_argnums=1)(buf, max_segment)
+    rows, envs = np.nonzero(np.asarray(buf.valid))
+    want = jax.jit(segment_last_offset, static_argnums=3)(
+        buf, jnp.asarray(rows, jnp.int32), jnp.asarray(envs, jnp.int32), max_segment)
+    got = np.asarray(index.last_offset)
+    np.testing.assert_array_equal(got[rows, envs], np.asarray(want))
+    assert (got[~np.asarray(buf.valid)] == 0).all()
+    if steps > 20:  # the oracle is not vacuous: segments of several steps
+        assert np.asarray(want).max() >= 2
+    if max_segment == 4:  # and some reach past the window, which caps them
+        assert np.asarray(want).max() == 3
+    sample = jax.jit(her_sample, static_argnames=("n", "strategy", "max_segment"))
+    for strategy in ("final", "future"):
+        a = sample(jax.random.key(5), buf, n=256, strategy=strategy, max_segment=max_segment)
+        b = sample(jax.random.key(5), index, n=256, strategy=strategy, max_segment=max_segment)
+        for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
+            np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    with pytest.raises(ValueError, match="indexed with max_segment"):
+        her_sample(jax.random.key(5), index, 8, "final", max_segment=max_segment + 1)
