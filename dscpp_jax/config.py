@@ -101,6 +101,9 @@ class Config:
                                        # every value under the 0 / -1 reward (not in the original)
     td3_action_l2: float = 0.0         # actor loss + L2 * mean(a^2) (OpenAI Baselines' HER: 1.0;
                                        # 0: off, as in the original)
+    td3_dtype: str = "float32"         # matmul operands and activations of TD3's networks:
+                                       # float32 or bfloat16 (parameters, optimiser state,
+                                       # losses and targets stay float32)
     shared_critic: bool = True         # one goal-conditioned TD3 for every option (the paper's
                                        # DSC++); False: one TD3 per option slot, each learning
                                        # from its own transitions (appendix Figure 2; model free)
@@ -301,6 +304,7 @@ class Config:
              f"{self.td3_sample_block}")
         need(self.mpc_dtype in ("float32", "bfloat16"), "mpc_dtype must be float32 or bfloat16")
         need(self.td3_action_l2 >= 0, "td3_action_l2 must be >= 0 (0: off)")
+        need(self.td3_dtype in ("float32", "bfloat16"), "td3_dtype must be float32 or bfloat16")
         need(self.physics in ("auto", "jax", "warp"),
              f"physics={self.physics!r}; choose auto, jax (MJX) or warp (MuJoCo Warp)")
         need(self.group_size >= 1, f"group_size={self.group_size} must be >= 1")

@@ -7,22 +7,23 @@ Both networks see the observation concatenated with the goal xy. The actor has t
   output ``a`` divided by ``max(1, mean |a|)`` over the action dimensions.
 
 The twin critic is one module whose parameters carry a leading axis of size 2 (``nn.vmap``), so
-``TwinCritic.apply`` returns both Q heads as an array of shape ``(2, ...)`` in one fused call.
+``TwinCritic.apply`` returns both Q heads as an array of shape ``(2, ...)`` in one fused call;
+``first_head`` picks out the first head's parameters for a :class:`QNetwork` of the same widths.
 
 The dynamics model lives in :mod:`dscpp_jax.dynamics`.
 """
 from __future__ import annotations
 
-from typing import Sequence
+from typing import Any, Sequence
 
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
 
-def _mlp_torso(x: jax.Array, hidden: Sequence[int]) -> jax.Array:
+def _mlp_torso(x: jax.Array, hidden: Sequence[int], dtype: Any = None) -> jax.Array:
     for i, width in enumerate(hidden):
-        x = nn.relu(nn.Dense(width, name=f"hidden_{i}")(x))
+        x = nn.relu(nn.Dense(width, dtype=dtype, name=f"hidden_{i}")(x))
     return x
 
 
@@ -39,12 +40,13 @@ class Actor(nn.Module):
     hidden: Sequence[int] = (256, 256)
     output_normalisation: bool = False
     max_action: float = 1.0
+    dtype: Any = None  # computation dtype of the layers (None: the inputs'); parameters float32
 
     @nn.compact
     def __call__(self, obs: jax.Array, goal: jax.Array) -> jax.Array:
         x = jnp.concatenate([obs, goal], axis=-1)
-        x = _mlp_torso(x, self.hidden)
-        a = nn.Dense(self.action_dim, name="out")(x)
+        x = _mlp_torso(x, self.hidden, self.dtype)
+        a = nn.Dense(self.action_dim, dtype=self.dtype, name="out")(x).astype(jnp.float32)
         if self.output_normalisation:
             return normalise_output(a)
         return self.max_action * jnp.tanh(a)
@@ -54,12 +56,13 @@ class QNetwork(nn.Module):
     """One Q head: Q(obs, goal, action) -> scalar (leading batch shape kept)."""
 
     hidden: Sequence[int] = (256, 256)
+    dtype: Any = None
 
     @nn.compact
     def __call__(self, obs: jax.Array, goal: jax.Array, action: jax.Array) -> jax.Array:
         x = jnp.concatenate([obs, goal, action], axis=-1)
-        x = _mlp_torso(x, self.hidden)
-        return nn.Dense(1, name="out")(x)[..., 0]
+        x = _mlp_torso(x, self.hidden, self.dtype)
+        return nn.Dense(1, dtype=self.dtype, name="out")(x)[..., 0].astype(jnp.float32)
 
 
 class TwinCritic(nn.Module):
@@ -67,6 +70,7 @@ class TwinCritic(nn.Module):
 
     hidden: Sequence[int] = (256, 256)
     num_heads: int = 2
+    dtype: Any = None
 
     @nn.compact
     def __call__(self, obs: jax.Array, goal: jax.Array, action: jax.Array) -> jax.Array:
@@ -78,7 +82,13 @@ class TwinCritic(nn.Module):
             out_axes=0,
             axis_size=self.num_heads,
         )
-        return heads(hidden=self.hidden, name="heads")(obs, goal, action)
+        return heads(hidden=self.hidden, dtype=self.dtype, name="heads")(obs, goal, action)
+
+
+def first_head(critic_params):
+    """The parameters of a :class:`TwinCritic`'s first head, for :class:`QNetwork` (``Q1`` alone:
+    the TD3 actor's loss needs no second head, and computing one costs as much as the first)."""
+    return {"params": jax.tree_util.tree_map(lambda p: p[0], critic_params["params"]["heads"])}
 
 
 def actor_action_dim(actor_params) -> int:

@@ -31,7 +31,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from dscpp_jax.networks import Actor, TwinCritic, actor_action_dim
+from dscpp_jax.networks import Actor, QNetwork, TwinCritic, actor_action_dim, first_head
 from dscpp_jax.replay import Transition
 
 PyTree = Any
@@ -73,6 +73,9 @@ class TD3Config:
     # added to the actor loss (0: off, as in the original). OpenAI Baselines' HER uses 1.0: it keeps
     # the deterministic policy off its saturated, bang-bang corners.
     action_l2: float = 0.0
+    # Matmul operands and activations of the actor and critics: "float32" or "bfloat16" (mixed
+    # precision: parameters, optimiser state, losses and TD targets stay float32).
+    compute_dtype: str = "float32"
 
     def __post_init__(self):
         object.__setattr__(self, "hidden", tuple(int(h) for h in self.hidden))
@@ -92,6 +95,9 @@ class TD3Config:
             raise ValueError(f"TD3Config.tau must be in [0, 1], got {self.tau}")
         if not 0.0 <= self.discount <= 1.0:
             raise ValueError(f"TD3Config.discount must be in [0, 1], got {self.discount}")
+        if self.compute_dtype not in ("float32", "bfloat16"):
+            raise ValueError(f"TD3Config.compute_dtype must be 'float32' or 'bfloat16', got "
+                             f"{self.compute_dtype!r}")
         if not self.action_l2 >= 0.0:
             raise ValueError(f"TD3Config.action_l2 must be >= 0, got {self.action_l2}")
         for name in ("random_action_prob", "random_action_prob_start"):
@@ -139,17 +145,22 @@ class TD3State:
     step: jax.Array  # int32: critic updates done so far
 
 
+def _dtype(cfg: TD3Config):
+    return jnp.bfloat16 if cfg.compute_dtype == "bfloat16" else None
+
+
 def _actor(cfg: TD3Config, action_dim: int) -> Actor:
     return Actor(
         action_dim=action_dim,
         hidden=cfg.hidden,
         output_normalisation=cfg.output_normalisation,
         max_action=cfg.max_action,
+        dtype=_dtype(cfg),
     )
 
 
 def _critic(cfg: TD3Config) -> TwinCritic:
-    return TwinCritic(hidden=cfg.hidden)
+    return TwinCritic(hidden=cfg.hidden, dtype=_dtype(cfg))
 
 
 def _actor_tx(cfg: TD3Config) -> optax.GradientTransformation:
@@ -189,6 +200,12 @@ def _pi(cfg: TD3Config, actor_params: PyTree, obs: jax.Array, goal: jax.Array) -
 
 def _q(cfg: TD3Config, critic_params: PyTree, obs, goal, action) -> jax.Array:
     return _critic(cfg).apply(critic_params, obs, goal, action)
+
+
+def _q1(cfg: TD3Config, critic_params: PyTree, obs, goal, action) -> jax.Array:
+    """The first head alone, ``_q(...)[0]`` at half the work (the actor's loss uses only Q1)."""
+    return QNetwork(hidden=cfg.hidden, dtype=_dtype(cfg)).apply(first_head(critic_params), obs, goal,
+                                                                 action)
 
 
 def td3_act(cfg: TD3Config, actor_params: PyTree, obs: jax.Array, goal: jax.Array) -> jax.Array:
@@ -306,7 +323,7 @@ def td3_update(
 
         def actor_loss_fn(params):
             a = _pi(cfg, params, batch.obs, batch.goal)
-            loss = -jnp.mean(_q(cfg, critic_params, batch.obs, batch.goal, a)[0])
+            loss = -jnp.mean(_q1(cfg, critic_params, batch.obs, batch.goal, a))
             if cfg.action_l2 > 0:
                 loss = loss + cfg.action_l2 * jnp.mean(jnp.square(a / cfg.max_action))
             return loss

@@ -221,7 +221,7 @@ def td3_config(config: Config) -> TD3Config:
               discount=config.discount, exploration_noise=config.action_noise,
               replay_capacity=config.replay_capacity,
               actor_lr=config.effective_td3_lr, critic_lr=config.effective_td3_lr,
-              action_l2=config.td3_action_l2)
+              action_l2=config.td3_action_l2, compute_dtype=config.td3_dtype)
     if config.td3_clip_targets:   # the value range under the 0 / -1 reward
         kw.update(target_range=(-1.0 / (1.0 - config.discount), 0.0))
     if config.random_action_prob >= 0:

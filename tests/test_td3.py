@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 import envs
+from dscpp_jax import td3 as td3_module
 from dscpp_jax.her import her_sample
 from dscpp_jax.replay import Transition, TrajStep, replay_add, replay_init
 from dscpp_jax.td3 import (TD3Config, td3_act, td3_explore as _td3_explore, td3_init, td3_random_prob,
@@ -98,6 +99,10 @@ def test_networks_and_targets_match_numpy(cfg):
     # value: min over the online twin critic at the online (clipped) action
     v_ref = np_twin_q(cfg, st.critic_params, bn.obs, bn.goal, np.clip(a_ref, -1, 1)).min(0)
     np.testing.assert_allclose(np.asarray(_value(cfg, st, b.obs, b.goal)), v_ref, rtol=1e-4, atol=1e-4)
+    # the first head alone (what the actor's loss uses) is the twin critic's first output
+    q1 = jax.jit(td3_module._q1, static_argnums=0)(cfg, st.critic_params, b.obs, b.goal, b.action)
+    np.testing.assert_allclose(np.asarray(q1), np_twin_q(cfg, st.critic_params, bn.obs, bn.goal,
+                                                         bn.action)[0], rtol=1e-4, atol=1e-4)
 
 
 def test_target_range_clips_targets_like_numpy():
@@ -428,3 +433,22 @@ def test_td3_her_learns_to_reach_goals_in_point_arena():
     assert np.isfinite(np.asarray(losses)).all()
     assert trained.mean() >= 0.8, trained
     assert np.mean(untrained) <= 0.2, untrained
+
+
+def test_bfloat16_compute_keeps_float32_state_and_close_values():
+    """compute_dtype="bfloat16": the networks compute in bf16 but parameters, optimiser state,
+    Q values, targets and losses stay float32, and the values are the float32 ones to bf16
+    accuracy."""
+    f32, bf = TD3Config.model_free(hidden=(32, 32)), TD3Config.model_free(hidden=(32, 32),
+                                                                         compute_dtype="bfloat16")
+    st = _perturbed_state(f32)
+    b = _batch(2)
+    v32, vbf = _value(f32, st, b.obs, b.goal), _value(bf, st, b.obs, b.goal)
+    assert vbf.dtype == jnp.float32
+    np.testing.assert_allclose(np.asarray(vbf), np.asarray(v32), rtol=0.05, atol=0.05)
+    assert not np.array_equal(np.asarray(vbf), np.asarray(v32))   # it did compute in bf16
+    s1, m = jax.jit(td3_update, static_argnums=0)(bf, st, b, jax.random.key(0))
+    assert all(x.dtype in (jnp.float32, jnp.int32) for x in jax.tree_util.tree_leaves(s1))
+    assert all(np.isfinite(float(v)) for v in m.values())
+    with pytest.raises(ValueError, match="compute_dtype"):
+        TD3Config(compute_dtype="float16")
