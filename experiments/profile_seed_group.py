@@ -22,9 +22,16 @@ of the iteration vmapped over the seeds with the seed axis named, exactly as the
 `--td3-variants` times the TD3 steps again with one thing changed, to tell what bounds them
 (measurements, not options of the library):
   fixed_batch   every step reuses one pre-drawn minibatch: no replay sampling or HER relabelling
-  bf16          matmuls traced under jax.default_matmul_precision("bfloat16")
+  bf16_compute  TD3Config(compute_dtype="bfloat16"): bf16 matmul operands and activations
+                (a context of jax.default_matmul_precision("bfloat16") would not do it: it asks
+                for the DEFAULT precision, which float32 matmuls already get)
   highest       matmuls at full float32 precision ("highest")
   half_batch    half the minibatch size
+
+`--trace` runs every timed part once more under the JAX profiler and summarises the device's
+kernels for it: how many ran, their summed time against the call's wall time (the rest is the
+device waiting for launches), and the kernels (XLA ops) that took the most time, by name. With
+`--hlo-dir DIR` the optimised HLO of each part is written there, to read what a fusion holds.
 
 Writes JSON (device, versions, command, every number) with --out.
 """
@@ -43,7 +50,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 if ROOT not in sys.path:
     sys.path.insert(0, ROOT)
 
-VARIANTS = ("fixed_batch", "bf16", "highest", "half_batch")
+VARIANTS = ("fixed_batch", "bf16_compute", "highest", "half_batch")
 PARTS = ("physics", "mpc", "rollout", "learn", "td3", "dynamics", "step")
 DEFAULT_PARTS = ("physics", "mpc", "rollout", "td3", "dynamics", "step")
 
@@ -61,7 +68,59 @@ def _time(fn, *args, reps=3):
     return statistics.median(ts), first
 
 
-def profile(cfg, n: int, reps: int, variants=(), parts=DEFAULT_PARTS) -> dict:
+def trace_summary(fn, *args, top: int = 30) -> dict:
+    """One call of ``fn(*args)`` under the JAX profiler: its device kernels, summed by name.
+
+    Returns the call's wall time, the number of kernels the device ran, their summed time, and the
+    ``top`` names by summed time (per line of the device's trace: "XLA Ops" names HLO ops,
+    the stream lines name kernels). On a CPU the host threads' events stand in for kernels."""
+    import glob
+    import tempfile
+
+    import jax
+    from jax.profiler import ProfileData
+
+    with tempfile.TemporaryDirectory() as d:
+        with jax.profiler.trace(d):
+            t0 = time.perf_counter()
+            jax.block_until_ready(fn(*args))
+            wall = time.perf_counter() - t0
+        files = glob.glob(os.path.join(d, "**", "*.xplane.pb"), recursive=True)
+        if not files:
+            return {"wall_s": wall, "error": "the profiler wrote no trace"}
+        data = ProfileData.from_file(files[0])
+        lines = {}
+        for plane in data.planes:
+            if not (plane.name.startswith("/device:") or plane.name == "/host:CPU"):
+                continue
+            for line in plane.lines:
+                if plane.name == "/host:CPU" and not line.name.startswith("tf_XLA"):
+                    continue
+                agg = {}
+                for ev in line.events:
+                    c, t = agg.get(ev.name, (0, 0.0))
+                    agg[ev.name] = (c + 1, t + ev.duration_ns)
+                if not agg:
+                    continue
+                busy = sum(t for _, t in agg.values()) / 1e9
+                count = sum(c for c, _ in agg.values())
+                ranked = sorted(agg.items(), key=lambda kv: -kv[1][1])[:top]
+                lines[f"{plane.name} | {line.name}"] = {
+                    "events": count, "busy_s": busy,
+                    "top": [{"name": k[:160], "count": c, "total_s": t / 1e9} for k, (c, t) in ranked]}
+    return {"wall_s": wall, "lines": lines}
+
+
+def _print_trace(name: str, tr: dict) -> None:
+    print(f"  trace of {name}: wall {tr['wall_s']:.4f} s", flush=True)
+    for lname, ln in tr.get("lines", {}).items():
+        print(f"    {lname}: {ln['events']} events, busy {ln['busy_s']:.4f} s", flush=True)
+        for row in ln["top"][:15]:
+            print(f"      {row['total_s']:8.4f} s {row['count']:>8} x  {row['name'][:100]}", flush=True)
+
+
+def profile(cfg, n: int, reps: int, variants=(), parts=DEFAULT_PARTS, trace: bool = False,
+            hlo_dir: str | None = None) -> dict:
     import dataclasses
 
     import jax
@@ -92,6 +151,13 @@ def profile(cfg, n: int, reps: int, variants=(), parts=DEFAULT_PARTS) -> dict:
         out[name + "_s"] = t
         out["first_call_s"][name] = first
         print(f"  N={n:>3} {name:<22} {t:8.4f} s", flush=True)
+        if trace:
+            tr = out.setdefault("trace", {})[name] = trace_summary(fn, *args)
+            _print_trace(name, tr)
+        if hlo_dir:
+            os.makedirs(hlo_dir, exist_ok=True)
+            with open(os.path.join(hlo_dir, f"{name}_N{n}.hlo.txt"), "w") as f:
+                f.write(fn.lower(*args).compile().as_text())
 
     def over_seeds(f, in_axes, out_axes):
         return jax.jit(jax.vmap(f, in_axes=in_axes, out_axes=out_axes, axis_name=A))
@@ -124,7 +190,8 @@ def profile(cfg, n: int, reps: int, variants=(), parts=DEFAULT_PARTS) -> dict:
 
     def td3_fn(tc=tcfg, sample_fn=sample):
         return over_seeds(lambda td3, rep, k: td3_updates(
-            tc, td3, rep, k, gcfg.td3_updates, sample_fn, sample_block=gcfg.td3_sample_block,
+            tc, td3, T.td3_buffer(gcfg, rep), k, gcfg.td3_updates, sample_fn,
+            sample_block=gcfg.td3_sample_block,
             seed_axis=A), 0, 0)
 
     if want("td3"):
@@ -144,8 +211,8 @@ def profile(cfg, n: int, reps: int, variants=(), parts=DEFAULT_PARTS) -> dict:
                                        sample_block=gcfg.td3_sample_block, seed_axis=A)
                 fn = over_seeds(f, 0, 0)
                 args = (states.td3, fixed, keys)
-            elif v == "bf16":
-                ctx = jax.default_matmul_precision("bfloat16")
+            elif v == "bf16_compute":
+                fn = td3_fn(dataclasses.replace(tcfg, compute_dtype="bfloat16"))
             elif v == "highest":
                 ctx = jax.default_matmul_precision("highest")
             elif v == "half_batch":
@@ -181,6 +248,9 @@ def main(argv=None) -> int:
     p.add_argument("--parts", default=",".join(DEFAULT_PARTS),
                    help=f"comma separated, from {','.join(PARTS)} (default: all but learn)")
     p.add_argument("--small", action="store_true", help="tiny sizes (CPU smoke test)")
+    p.add_argument("--trace", action="store_true",
+                   help="also run each part once under the JAX profiler and summarise its kernels")
+    p.add_argument("--hlo-dir", default=None, help="write each part's optimised HLO here")
     p.add_argument("--out", default=None)
     a = p.parse_args(argv)
 
@@ -207,7 +277,7 @@ def main(argv=None) -> int:
     print(f"{a.env} {a.algo} on {dev.device_kind} ({jax.default_backend()})", flush=True)
     rows = []
     for n in [int(x) for x in a.seeds_list.split(",")]:
-        rows.append(profile(cfg, n, a.reps, variants, parts))
+        rows.append(profile(cfg, n, a.reps, variants, parts, a.trace, a.hlo_dir))
     import importlib.metadata as md
 
     def ver(name):

@@ -272,9 +272,14 @@ def test_profile_seed_group_smoke(ref, tmp_path):
     sets = [a for s in TINY for a in ("--set", s)]
     assert profile_seed_group.main(["--env", "point_u_maze", "--algo", "td3_her", "--seeds-list",
                                     "2", "--parts", "td3,step", "--td3-variants", "fixed_batch",
-                                    "--reps", "1", "--out", out] + sets) == 0
+                                    "--reps", "1", "--trace", "--hlo-dir", str(tmp_path / "hlo"),
+                                    "--out", out] + sets) == 0
     row = json.load(open(out))["rows"][0]
     assert row["N"] == 2 and row["td3_s"] > 0 and row["td3_fixed_batch_s"] > 0
+    tr = row["trace"]["td3"]    # the kernels of one traced call, summed by name
+    assert tr["wall_s"] > 0 and tr["lines"]
+    assert all(ln["events"] >= len(ln["top"]) > 0 for ln in tr["lines"].values())
+    assert "ENTRY" in (tmp_path / "hlo" / "td3_N2.hlo.txt").read_text()
     assert row["step_s"] > 0 and row["env_steps_per_s"] > 0 and "physics_s" not in row
     with pytest.raises(SystemExit):
         profile_seed_group.main(["--td3-variants", "unknown"] + sets)
