@@ -30,7 +30,8 @@ of the iteration vmapped over the seeds with the seed axis named, exactly as the
 
 `--trace` runs every timed part once more under the JAX profiler and summarises the device's
 kernels for it: how many ran, their summed time against the call's wall time (the rest is the
-device waiting for launches), and the kernels (XLA ops) that took the most time, by name. With
+device waiting for launches), and the kernels (XLA ops) that took the most time, by name, each
+with the JAX operation it came from. With
 `--hlo-dir DIR` the optimised HLO of each part is written there, to read what a fusion holds.
 
 Writes JSON (device, versions, command, every number) with --out.
@@ -68,12 +69,42 @@ def _time(fn, *args, reps=3):
     return statistics.median(ts), first
 
 
-def trace_summary(fn, *args, top: int = 30) -> dict:
+def hlo_ops(hlo_text: str) -> dict:
+    """Instruction name -> the JAX operation it came from (its ``op_name`` metadata), for every
+    instruction of an optimised HLO module that has one. Names are keyed as kernels are named in
+    a trace: with ``.`` and ``-`` as ``_`` (``gemm_fusion_dot.37`` -> ``gemm_fusion_dot_37``)."""
+    import re
+    pat = re.compile(r'^\s*(?:ROOT\s+)?%?([\w.\-]+)\s*=.*?metadata=\{[^}]*op_name="([^"]*)"')
+    out = {}
+    for line in hlo_text.splitlines():
+        m = pat.match(line)
+        if m:
+            out.setdefault(_key(m.group(1)), m.group(2))
+    return out
+
+
+def _key(name: str) -> str:
+    """A kernel's or instruction's name as `hlo_ops` keys it (GPU traces write `.` as `_`)."""
+    import re
+    return re.sub(r"[.\-]", "_", name)
+
+
+def _short_op(op: str) -> str:
+    """The JAX operation's path without the jit / vmap / loop-body wrappers around it."""
+    cut = max(op.rfind(w) + len(w) if w in op else 0
+              for w in ("eval_jaxpr/", "closed_call/", "while/body/"))
+    return op[cut:] or op
+
+
+def trace_summary(fn, *args, top: int = 30, hlo_text: str | None = None) -> dict:
     """One call of ``fn(*args)`` under the JAX profiler: its device kernels, summed by name.
 
     Returns the call's wall time, the number of kernels the device ran, their summed time, and the
     ``top`` names by summed time (per line of the device's trace: "XLA Ops" names HLO ops,
-    the stream lines name kernels). On a CPU the host threads' events stand in for kernels."""
+    the stream lines name kernels). On a CPU the host threads' events stand in for kernels.
+    Given the program's optimised HLO (``hlo_text``), each name that is an instruction of it also
+    gets ``op``: the JAX operation it came from (e.g. ``TwinCritic/vmap(heads)/hidden_1/dot_general``)."""
+    ops = hlo_ops(hlo_text) if hlo_text else {}
     import glob
     import tempfile
 
@@ -107,7 +138,9 @@ def trace_summary(fn, *args, top: int = 30) -> dict:
                 ranked = sorted(agg.items(), key=lambda kv: -kv[1][1])[:top]
                 lines[f"{plane.name} | {line.name}"] = {
                     "events": count, "busy_s": busy,
-                    "top": [{"name": k[:160], "count": c, "total_s": t / 1e9} for k, (c, t) in ranked]}
+                    "top": [dict({"name": k[:160], "count": c, "total_s": t / 1e9},
+                                 **({"op": _short_op(ops[_key(k)])[:200]} if _key(k) in ops else {}))
+                            for k, (c, t) in ranked]}
     return {"wall_s": wall, "lines": lines}
 
 
@@ -116,7 +149,8 @@ def _print_trace(name: str, tr: dict) -> None:
     for lname, ln in tr.get("lines", {}).items():
         print(f"    {lname}: {ln['events']} events, busy {ln['busy_s']:.4f} s", flush=True)
         for row in ln["top"][:15]:
-            print(f"      {row['total_s']:8.4f} s {row['count']:>8} x  {row['name'][:100]}", flush=True)
+            op = f"  ({row['op'][:90]})" if "op" in row else ""
+            print(f"      {row['total_s']:8.4f} s {row['count']:>8} x  {row['name'][:60]}{op}", flush=True)
 
 
 def profile(cfg, n: int, reps: int, variants=(), parts=DEFAULT_PARTS, trace: bool = False,
@@ -151,13 +185,14 @@ def profile(cfg, n: int, reps: int, variants=(), parts=DEFAULT_PARTS, trace: boo
         out[name + "_s"] = t
         out["first_call_s"][name] = first
         print(f"  N={n:>3} {name:<22} {t:8.4f} s", flush=True)
-        if trace:
-            tr = out.setdefault("trace", {})[name] = trace_summary(fn, *args)
-            _print_trace(name, tr)
+        text = fn.lower(*args).compile().as_text() if (trace or hlo_dir) else None
         if hlo_dir:
             os.makedirs(hlo_dir, exist_ok=True)
             with open(os.path.join(hlo_dir, f"{name}_N{n}.hlo.txt"), "w") as f:
-                f.write(fn.lower(*args).compile().as_text())
+                f.write(text)
+        if trace:
+            tr = out.setdefault("trace", {})[name] = trace_summary(fn, *args, hlo_text=text)
+            _print_trace(name, tr)
 
     def over_seeds(f, in_axes, out_axes):
         return jax.jit(jax.vmap(f, in_axes=in_axes, out_axes=out_axes, axis_name=A))

@@ -279,6 +279,8 @@ def test_profile_seed_group_smoke(ref, tmp_path):
     tr = row["trace"]["td3"]    # the kernels of one traced call, summed by name
     assert tr["wall_s"] > 0 and tr["lines"]
     assert all(ln["events"] >= len(ln["top"]) > 0 for ln in tr["lines"].values())
+    ops = [row["op"] for ln in tr["lines"].values() for row in ln["top"] if "op" in row]
+    assert ops and all(isinstance(op, str) and op for op in ops)   # kernels traced to JAX ops
     assert "ENTRY" in (tmp_path / "hlo" / "td3_N2.hlo.txt").read_text()
     assert row["step_s"] > 0 and row["env_steps_per_s"] > 0 and "physics_s" not in row
     with pytest.raises(SystemExit):
