@@ -63,6 +63,15 @@ def config_from_args(args) -> Config:
 DETERMINISTIC_FLAG = "--xla_gpu_deterministic_ops=true"
 
 
+def _backends_initialized() -> bool:
+    """Whether JAX already uses a device in this process (then XLA_FLAGS no longer matter)."""
+    try:   # a private helper of JAX's; where a version lacks it, assume no device is in use yet
+        from jax._src.xla_bridge import backends_are_initialized
+    except ImportError:
+        return False
+    return backends_are_initialized()
+
+
 def use_deterministic_ops(on: bool) -> bool:
     """Ask XLA for deterministic GPU kernels (``XLA_FLAGS`` += ``--xla_gpu_deterministic_ops``).
 
@@ -76,12 +85,7 @@ def use_deterministic_ops(on: bool) -> bool:
     flags = os.environ.get("XLA_FLAGS", "")
     if not on or "xla_gpu_deterministic_ops" in flags:
         return "xla_gpu_deterministic_ops=true" in flags
-    try:   # a private helper of JAX's; where a version lacks it, assume no device is in use yet
-        from jax._src.xla_bridge import backends_are_initialized
-    except ImportError:
-        def backends_are_initialized():
-            return False
-    if backends_are_initialized():
+    if _backends_initialized():
         import jax
         if jax.default_backend() != "gpu":
             return False   # CPU kernels repeat anyway
@@ -91,6 +95,39 @@ def use_deterministic_ops(on: bool) -> bool:
         return False
     os.environ["XLA_FLAGS"] = f"{flags} {DETERMINISTIC_FLAG}".strip()
     return True
+
+
+FUSION_AUTOTUNER_FLAG = "--xla_gpu_experimental_enable_fusion_autotuner=false"
+
+
+def use_fusion_autotuner_off() -> bool:
+    """Turn XLA's fusion autotuner off (``XLA_FLAGS`` += ``--xla_gpu_experimental_enable_fusion_autotuner=false``)
+    unless ``XLA_FLAGS`` already sets it either way.
+
+    That autotuner compiles each large reduction and transpose fusion a second time with Triton's
+    block-level emitter and times both. Under a seed group's vmap some of those fusions become
+    large enough that the Triton variants take minutes to compile: a cold compile of a 16-seed
+    MF-DSC++ group on an H200 took 323 s with it and 28.5 s without, for 3.6 % more time per
+    iteration (2.80 s against 2.71 s; one seed: 29.7 s and 1.150 s against 28.5 s and 1.128 s;
+    experiments/results/seed_groups/README.md, "The fusion autotuner"). GEMM autotuning stays
+    on. Like every XLA flag it only takes effect before JAX first touches a device; returns whether
+    the autotuner is off for this process.
+    """
+    flags = os.environ.get("XLA_FLAGS", "")
+    if "xla_gpu_experimental_enable_fusion_autotuner" in flags:
+        return FUSION_AUTOTUNER_FLAG.lstrip("-") in flags
+    if _backends_initialized():
+        return False
+    os.environ["XLA_FLAGS"] = f"{flags} {FUSION_AUTOTUNER_FLAG}".strip()
+    return True
+
+
+def use_xla_flags(deterministic: bool) -> bool:
+    """The XLA flags of a run, set before JAX touches a device: the fusion autotuner off
+    (`use_fusion_autotuner_off`) and deterministic kernels where asked (`use_deterministic_ops`,
+    whose result this returns)."""
+    use_fusion_autotuner_off()
+    return use_deterministic_ops(deterministic)
 
 
 COMPILE_CACHE_ENV = "DSCPP_JAX_COMPILE_CACHE"
@@ -875,8 +912,9 @@ def deterministic_default(args) -> bool:
     so there the switch buys no repeatability; for the model-free learners it would cost time
     per iteration, while for the model-based ones it keeps the compile short: the switch also
     turns XLA's autotuning off, and without it the MPC's programs are autotuned at every cold
-    compile (one H200: 44 s against 20 s for one MB-DSC++ seed, 368 s against 21 s for a
-    16-seed group, for about 3-10 % less time per iteration; docs/training.md,
+    compile. With the fusion autotuner off (`use_fusion_autotuner_off`) that costs one H200
+    about 41 s against 20 s for one MB-DSC++ seed and 37 s against 21 s for a 16-seed group
+    (368 s with that autotuner on), for about 3-10 % less time per iteration; docs/training.md,
     "Reproducibility")."""
     return not runs_on_warp(args) or _model_based(args)
 
@@ -890,7 +928,7 @@ def deterministic_choice(args) -> bool:
 def main(argv: Optional[list[str]] = None) -> int:
     args = build_parser().parse_args(argv)
     if hasattr(args, "deterministic"):
-        use_deterministic_ops(deterministic_choice(args))
+        use_xla_flags(deterministic_choice(args))
     if hasattr(args, "compile_cache"):
         use_compile_cache(args.compile_cache)
     try:

@@ -143,8 +143,8 @@ def main(argv=None) -> int:
                    help="JSON path (default experiments/results/bench_seeds_<device>.json)")
     args = p.parse_args(argv)
 
-    from dscpp_jax.cli import _overrides, deterministic_choice, use_deterministic_ops
-    det = use_deterministic_ops(deterministic_choice(as_train(args)))
+    from dscpp_jax.cli import _overrides, deterministic_choice, use_xla_flags
+    det = use_xla_flags(deterministic_choice(as_train(args)))
     import jax
 
     from dscpp_jax.config import preset

@@ -289,6 +289,8 @@ def main(argv=None) -> int:
     p.add_argument("--out", default=None)
     a = p.parse_args(argv)
 
+    from dscpp_jax.cli import use_fusion_autotuner_off
+    use_fusion_autotuner_off()   # as `train` runs (before JAX touches a device)
     import jax
 
     from dscpp_jax.config import parse_value, preset

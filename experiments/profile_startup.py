@@ -53,10 +53,10 @@ def main(argv=None) -> dict:
     import jax
     from dscpp_jax import preset
     from dscpp_jax import trainer as T
-    from dscpp_jax.cli import deterministic_choice, use_compile_cache, use_deterministic_ops
+    from dscpp_jax.cli import deterministic_choice, use_compile_cache, use_xla_flags
     from dscpp_jax.config import parse_value
     phases["imports"] = time.time() - t
-    deterministic = use_deterministic_ops(deterministic_choice(args))
+    deterministic = use_xla_flags(deterministic_choice(args))
     if args.cprofile:
         os.makedirs(args.cprofile, exist_ok=True)
 

@@ -1361,8 +1361,8 @@ def main(argv: Optional[list] = None) -> int:
     # and without taking 75 % of every visible GPU up front: the evaluations are small, and train
     # calls of other jobs on the host may be using those GPUs
     os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
-    from dscpp_jax.cli import deterministic_choice, use_compile_cache, use_deterministic_ops
-    use_deterministic_ops(deterministic_choice(argparse.Namespace(   # evaluates Figure 4's learner
+    from dscpp_jax.cli import deterministic_choice, use_compile_cache, use_xla_flags
+    use_xla_flags(deterministic_choice(argparse.Namespace(   # evaluates Figure 4's learner
         env="u_maze", set=args.set, algo=args.fig4_algo, deterministic=args.deterministic)))
     use_compile_cache(args.compile_cache)
     os.makedirs(args.out, exist_ok=True)

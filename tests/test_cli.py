@@ -241,6 +241,38 @@ def test_deterministic_switch_sets_xla_flags_only_before_jax_uses_a_device(monke
     assert p.parse_args(["eval", "--run", "r", "--no-deterministic"]).deterministic is False
 
 
+def test_fusion_autotuner_flag_is_added_once_and_never_over_the_users_choice(monkeypatch):
+    from jax._src import xla_bridge
+    from dscpp_jax.cli import (DETERMINISTIC_FLAG, FUSION_AUTOTUNER_FLAG, use_fusion_autotuner_off,
+                               use_xla_flags)
+    monkeypatch.setattr(xla_bridge, "backends_are_initialized", lambda: False)
+    monkeypatch.setenv("XLA_FLAGS", "--xla_dump_to=/tmp/x")
+    assert use_xla_flags(False) is False
+    assert os.environ["XLA_FLAGS"] == f"--xla_dump_to=/tmp/x {FUSION_AUTOTUNER_FLAG}"
+    assert use_xla_flags(True)                          # added once; determinism on top
+    assert os.environ["XLA_FLAGS"] == (f"--xla_dump_to=/tmp/x {FUSION_AUTOTUNER_FLAG} "
+                                       f"{DETERMINISTIC_FLAG}")
+    on = "--xla_gpu_experimental_enable_fusion_autotuner=true"
+    monkeypatch.setenv("XLA_FLAGS", on)                 # the user's choice stands
+    assert not use_fusion_autotuner_off() and os.environ["XLA_FLAGS"] == on
+    monkeypatch.setenv("XLA_FLAGS", "")
+    monkeypatch.setattr(xla_bridge, "backends_are_initialized", lambda: True)
+    assert not use_fusion_autotuner_off() and os.environ["XLA_FLAGS"] == ""   # too late
+    monkeypatch.delenv("XLA_FLAGS")
+    monkeypatch.setattr(xla_bridge, "backends_are_initialized", lambda: False)
+    assert use_fusion_autotuner_off() and os.environ["XLA_FLAGS"] == FUSION_AUTOTUNER_FLAG
+
+
+def test_xla_accepts_the_fusion_autotuner_flag():
+    """XLA aborts on a flag it does not know; this jaxlib must parse the one `train` adds."""
+    import subprocess
+    from dscpp_jax.cli import FUSION_AUTOTUNER_FLAG
+    env = dict(os.environ, XLA_FLAGS=FUSION_AUTOTUNER_FLAG, JAX_PLATFORMS="cpu")
+    r = subprocess.run([sys.executable, "-c", "import jax.numpy as j; print(j.ones(2).sum())"],
+                       env=env, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0 and r.stdout.strip() == "2.0", r.stderr[-2000:]
+
+
 def test_deterministic_default_follows_the_physics_and_the_algorithm(tmp_path, monkeypatch):
     """Deterministic XLA kernels by default, except for model-free learners where the ant runs on
     MuJoCo Warp (which does not repeat either way): the physics from --physics, --set physics=,
