@@ -107,8 +107,8 @@ def use_fusion_autotuner_off() -> bool:
     That autotuner compiles each large reduction and transpose fusion a second time with Triton's
     block-level emitter and times both. Under a seed group's vmap some of those fusions become
     large enough that the Triton variants take minutes to compile: a cold compile of a 16-seed
-    MF-DSC++ group on an H200 took 323 s with it and 28.5 s without, for 3.6 % more time per
-    iteration (2.80 s against 2.71 s; one seed: 29.7 s and 1.150 s against 28.5 s and 1.128 s;
+    MF-DSC++ group on an H200 took 324 s with it (XLA's defaults) and 28.5 s without, for 3.6 %
+    more time per iteration (2.80 s against 2.71 s; one seed: 29.7 s and 1.150 s against 28.5 s and 1.128 s;
     experiments/results/seed_groups/README.md, "The fusion autotuner"). GEMM autotuning stays
     on. Like every XLA flag it only takes effect before JAX first touches a device; returns whether
     the autotuner is off for this process.
