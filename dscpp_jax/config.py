@@ -102,8 +102,9 @@ class Config:
     td3_action_l2: float = 0.0         # actor loss + L2 * mean(a^2) (OpenAI Baselines' HER: 1.0;
                                        # 0: off, as in the original)
     td3_dtype: str = "float32"         # matmul operands and activations of TD3's networks:
-                                       # float32 or bfloat16 (parameters, optimiser state,
-                                       # losses and targets stay float32)
+                                       # float32 or bfloat16 (the hidden layers; the first and
+                                       # output layers, parameters, optimiser state, losses
+                                       # and targets stay float32)
     shared_critic: bool = True         # one goal-conditioned TD3 for every option (the paper's
                                        # DSC++); False: one TD3 per option slot, each learning
                                        # from its own transitions (appendix Figure 2; model free)

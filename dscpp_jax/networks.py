@@ -21,9 +21,15 @@ import jax
 import jax.numpy as jnp
 
 
-def _mlp_torso(x: jax.Array, hidden: Sequence[int], dtype: Any = None) -> jax.Array:
+def _mlp_torso(x: jax.Array, hidden: Sequence[int], dtype: Any = None, io_dtype: Any = None) -> jax.Array:
+    """ReLU layers; the first layer's product in ``io_dtype`` (default ``dtype``), every activation
+    and later product in ``dtype`` (None: the inputs')."""
     for i, width in enumerate(hidden):
-        x = nn.relu(nn.Dense(width, dtype=dtype, name=f"hidden_{i}")(x))
+        layer_dtype = (dtype if io_dtype is None else io_dtype) if i == 0 else dtype
+        x = nn.Dense(width, dtype=layer_dtype, name=f"hidden_{i}")(x)
+        if dtype is not None:
+            x = x.astype(dtype)
+        x = nn.relu(x)
     return x
 
 
@@ -41,12 +47,14 @@ class Actor(nn.Module):
     output_normalisation: bool = False
     max_action: float = 1.0
     dtype: Any = None  # computation dtype of the layers (None: the inputs'); parameters float32
+    io_dtype: Any = None  # of the first and the output layer's products (None: ``dtype``)
 
     @nn.compact
     def __call__(self, obs: jax.Array, goal: jax.Array) -> jax.Array:
         x = jnp.concatenate([obs, goal], axis=-1)
-        x = _mlp_torso(x, self.hidden, self.dtype)
-        a = nn.Dense(self.action_dim, dtype=self.dtype, name="out")(x).astype(jnp.float32)
+        x = _mlp_torso(x, self.hidden, self.dtype, self.io_dtype)
+        out_dtype = self.dtype if self.io_dtype is None else self.io_dtype
+        a = nn.Dense(self.action_dim, dtype=out_dtype, name="out")(x).astype(jnp.float32)
         if self.output_normalisation:
             return normalise_output(a)
         return self.max_action * jnp.tanh(a)
@@ -57,12 +65,14 @@ class QNetwork(nn.Module):
 
     hidden: Sequence[int] = (256, 256)
     dtype: Any = None
+    io_dtype: Any = None
 
     @nn.compact
     def __call__(self, obs: jax.Array, goal: jax.Array, action: jax.Array) -> jax.Array:
         x = jnp.concatenate([obs, goal, action], axis=-1)
-        x = _mlp_torso(x, self.hidden, self.dtype)
-        return nn.Dense(1, dtype=self.dtype, name="out")(x)[..., 0].astype(jnp.float32)
+        x = _mlp_torso(x, self.hidden, self.dtype, self.io_dtype)
+        out_dtype = self.dtype if self.io_dtype is None else self.io_dtype
+        return nn.Dense(1, dtype=out_dtype, name="out")(x)[..., 0].astype(jnp.float32)
 
 
 class TwinCritic(nn.Module):
@@ -71,6 +81,7 @@ class TwinCritic(nn.Module):
     hidden: Sequence[int] = (256, 256)
     num_heads: int = 2
     dtype: Any = None
+    io_dtype: Any = None
 
     @nn.compact
     def __call__(self, obs: jax.Array, goal: jax.Array, action: jax.Array) -> jax.Array:
@@ -82,7 +93,8 @@ class TwinCritic(nn.Module):
             out_axes=0,
             axis_size=self.num_heads,
         )
-        return heads(hidden=self.hidden, dtype=self.dtype, name="heads")(obs, goal, action)
+        return heads(hidden=self.hidden, dtype=self.dtype, io_dtype=self.io_dtype,
+                     name="heads")(obs, goal, action)
 
 
 def first_head(critic_params):

@@ -35,6 +35,7 @@ from dscpp_jax.networks import Actor, QNetwork, TwinCritic, actor_action_dim, fi
 from dscpp_jax.replay import Transition
 
 PyTree = Any
+TD3_DTYPES = ("float32", "bfloat16")   # TD3Config.compute_dtype's choices
 
 
 @dataclasses.dataclass(frozen=True)
@@ -73,8 +74,10 @@ class TD3Config:
     # added to the actor loss (0: off, as in the original). OpenAI Baselines' HER uses 1.0: it keeps
     # the deterministic policy off its saturated, bang-bang corners.
     action_l2: float = 0.0
-    # Matmul operands and activations of the actor and critics: "float32" or "bfloat16" (mixed
-    # precision: parameters, optimiser state, losses and TD targets stay float32).
+    # Matmul operands and activations of the actor and critics: "float32", or "bfloat16": the hidden
+    # activations and the products between hidden layers in bf16; the first layer's product and
+    # the output layer in float32, so that raw positions and Q values (down to -1 / (1 - discount))
+    # keep their resolution. Parameters, optimiser state, losses and TD targets stay float32.
     compute_dtype: str = "float32"
 
     def __post_init__(self):
@@ -95,8 +98,8 @@ class TD3Config:
             raise ValueError(f"TD3Config.tau must be in [0, 1], got {self.tau}")
         if not 0.0 <= self.discount <= 1.0:
             raise ValueError(f"TD3Config.discount must be in [0, 1], got {self.discount}")
-        if self.compute_dtype not in ("float32", "bfloat16"):
-            raise ValueError(f"TD3Config.compute_dtype must be 'float32' or 'bfloat16', got "
+        if self.compute_dtype not in TD3_DTYPES:
+            raise ValueError(f"TD3Config.compute_dtype must be one of {TD3_DTYPES}, got "
                              f"{self.compute_dtype!r}")
         if not self.action_l2 >= 0.0:
             raise ValueError(f"TD3Config.action_l2 must be >= 0, got {self.action_l2}")
@@ -145,8 +148,9 @@ class TD3State:
     step: jax.Array  # int32: critic updates done so far
 
 
-def _dtype(cfg: TD3Config):
-    return jnp.bfloat16 if cfg.compute_dtype == "bfloat16" else None
+def _dtypes(cfg: TD3Config):
+    """(dtype, io_dtype) of the networks for ``cfg.compute_dtype``."""
+    return {"float32": (None, None), "bfloat16": (jnp.bfloat16, jnp.float32)}[cfg.compute_dtype]
 
 
 def _actor(cfg: TD3Config, action_dim: int) -> Actor:
@@ -155,12 +159,14 @@ def _actor(cfg: TD3Config, action_dim: int) -> Actor:
         hidden=cfg.hidden,
         output_normalisation=cfg.output_normalisation,
         max_action=cfg.max_action,
-        dtype=_dtype(cfg),
+        dtype=_dtypes(cfg)[0],
+        io_dtype=_dtypes(cfg)[1],
     )
 
 
 def _critic(cfg: TD3Config) -> TwinCritic:
-    return TwinCritic(hidden=cfg.hidden, dtype=_dtype(cfg))
+    dtype, io_dtype = _dtypes(cfg)
+    return TwinCritic(hidden=cfg.hidden, dtype=dtype, io_dtype=io_dtype)
 
 
 def _actor_tx(cfg: TD3Config) -> optax.GradientTransformation:
@@ -204,8 +210,9 @@ def _q(cfg: TD3Config, critic_params: PyTree, obs, goal, action) -> jax.Array:
 
 def _q1(cfg: TD3Config, critic_params: PyTree, obs, goal, action) -> jax.Array:
     """The first head alone, ``_q(...)[0]`` at half the work (the actor's loss uses only Q1)."""
-    return QNetwork(hidden=cfg.hidden, dtype=_dtype(cfg)).apply(first_head(critic_params), obs, goal,
-                                                                 action)
+    dtype, io_dtype = _dtypes(cfg)
+    return QNetwork(hidden=cfg.hidden, dtype=dtype, io_dtype=io_dtype).apply(
+        first_head(critic_params), obs, goal, action)
 
 
 def td3_act(cfg: TD3Config, actor_params: PyTree, obs: jax.Array, goal: jax.Array) -> jax.Array:

@@ -22,7 +22,8 @@ of the iteration vmapped over the seeds with the seed axis named, exactly as the
 `--td3-variants` times the TD3 steps again with one thing changed, to tell what bounds them
 (measurements, not options of the library):
   fixed_batch   every step reuses one pre-drawn minibatch: no replay sampling or HER relabelling
-  bf16_compute  TD3Config(compute_dtype="bfloat16"): bf16 matmul operands and activations
+  bf16_compute  TD3Config(compute_dtype="bfloat16"): bf16 products and activations in the
+                hidden layers
                 (a context of jax.default_matmul_precision("bfloat16") would not do it: it asks
                 for the DEFAULT precision, which float32 matmuls already get)
   highest       matmuls at full float32 precision ("highest")

@@ -436,8 +436,8 @@ def test_td3_her_learns_to_reach_goals_in_point_arena():
 
 
 def test_bfloat16_compute_keeps_float32_state_and_close_values():
-    """compute_dtype="bfloat16": the networks compute in bf16 but parameters, optimiser state,
-    Q values, targets and losses stay float32, and the values are the float32 ones to bf16
+    """compute_dtype="bfloat16": the hidden layers compute in bf16 but parameters, optimiser
+    state, Q values, targets and losses stay float32, and the values are the float32 ones to bf16
     accuracy."""
     f32, bf = TD3Config.model_free(hidden=(32, 32)), TD3Config.model_free(hidden=(32, 32),
                                                                          compute_dtype="bfloat16")
@@ -452,3 +452,47 @@ def test_bfloat16_compute_keeps_float32_state_and_close_values():
     assert all(np.isfinite(float(v)) for v in m.values())
     with pytest.raises(ValueError, match="compute_dtype"):
         TD3Config(compute_dtype="float16")
+
+
+def _dot_operand_dtypes(fn, *args):
+    """The operand dtypes of every dot_general in fn's jaxpr, in program order."""
+    out = []
+
+    def walk(jaxpr):
+        for eqn in jaxpr.eqns:
+            if eqn.primitive.name == "dot_general":
+                out.append(tuple(str(v.aval.dtype) for v in eqn.invars))
+            for v in eqn.params.values():
+                if hasattr(v, "jaxpr") and hasattr(v.jaxpr, "eqns"):
+                    walk(v.jaxpr)
+                elif hasattr(v, "eqns"):
+                    walk(v)
+
+    walk(jax.make_jaxpr(fn)(*args).jaxpr)
+    return out
+
+
+def test_bfloat16_keeps_positions_and_q_values_at_float32_resolution():
+    """"bfloat16" runs the first layer's product and the output layer in float32: Q values near
+    -60, where bf16's spacing is 0.25 (a quarter of one step's reward), come out within float32
+    rounding of the hidden layers' bf16 error, not on bf16's grid (every layer in bf16 put each
+    value on it, up to 0.125 off)."""
+    f32 = TD3Config.model_free(hidden=(32, 32))
+    bf = TD3Config.model_free(hidden=(32, 32), compute_dtype="bfloat16")
+    st = _perturbed_state(f32)
+    heads = st.critic_params["params"]["heads"]
+    out = {**heads["out"], "bias": heads["out"]["bias"] - 60.0}
+    st = st.replace(critic_params={"params": {"heads": {**heads, "out": out}}})
+    b = _batch(3, 256)
+    v32 = np.asarray(_value(f32, st, b.obs, b.goal))
+    vbf = np.asarray(_value(bf, st, b.obs, b.goal))
+    assert (v32 < -55).all()
+    assert np.mean(np.mod(vbf * 4.0, 1.0) == 0.0) < 0.1     # not multiples of 0.25
+    assert np.abs(vbf - v32).max() < 0.06
+    # which products run in bf16: a critic head's layers are the first, the hidden, the output
+    q = lambda c, p: td3_module._q(c, p, b.obs, b.goal, b.action)
+    for cfg, want in ((f32, ["float32", "float32", "float32"]),
+                      (bf, ["float32", "bfloat16", "float32"])):
+        got = _dot_operand_dtypes(functools.partial(q, cfg), st.critic_params)
+        assert [d[0] for d in got] == want, (cfg.compute_dtype, got)
+        assert all(x == w for x, w in got), got
