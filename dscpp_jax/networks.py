@@ -21,11 +21,16 @@ import jax
 import jax.numpy as jnp
 
 
+def _edge_dtype(dtype: Any, io_dtype: Any) -> Any:
+    """The dtype of the first and the output layer's products: ``io_dtype``, else ``dtype``."""
+    return dtype if io_dtype is None else io_dtype
+
+
 def _mlp_torso(x: jax.Array, hidden: Sequence[int], dtype: Any = None, io_dtype: Any = None) -> jax.Array:
-    """ReLU layers; the first layer's product in ``io_dtype`` (default ``dtype``), every activation
-    and later product in ``dtype`` (None: the inputs')."""
+    """ReLU layers; the first layer's product in ``_edge_dtype(dtype, io_dtype)``, every
+    activation and later product in ``dtype`` (None: the inputs')."""
     for i, width in enumerate(hidden):
-        layer_dtype = (dtype if io_dtype is None else io_dtype) if i == 0 else dtype
+        layer_dtype = _edge_dtype(dtype, io_dtype) if i == 0 else dtype
         x = nn.Dense(width, dtype=layer_dtype, name=f"hidden_{i}")(x)
         if dtype is not None:
             x = x.astype(dtype)
@@ -53,8 +58,8 @@ class Actor(nn.Module):
     def __call__(self, obs: jax.Array, goal: jax.Array) -> jax.Array:
         x = jnp.concatenate([obs, goal], axis=-1)
         x = _mlp_torso(x, self.hidden, self.dtype, self.io_dtype)
-        out_dtype = self.dtype if self.io_dtype is None else self.io_dtype
-        a = nn.Dense(self.action_dim, dtype=out_dtype, name="out")(x).astype(jnp.float32)
+        a = nn.Dense(self.action_dim, dtype=_edge_dtype(self.dtype, self.io_dtype),
+                     name="out")(x).astype(jnp.float32)
         if self.output_normalisation:
             return normalise_output(a)
         return self.max_action * jnp.tanh(a)
@@ -71,8 +76,8 @@ class QNetwork(nn.Module):
     def __call__(self, obs: jax.Array, goal: jax.Array, action: jax.Array) -> jax.Array:
         x = jnp.concatenate([obs, goal, action], axis=-1)
         x = _mlp_torso(x, self.hidden, self.dtype, self.io_dtype)
-        out_dtype = self.dtype if self.io_dtype is None else self.io_dtype
-        return nn.Dense(1, dtype=out_dtype, name="out")(x)[..., 0].astype(jnp.float32)
+        out = nn.Dense(1, dtype=_edge_dtype(self.dtype, self.io_dtype), name="out")(x)
+        return out[..., 0].astype(jnp.float32)
 
 
 class TwinCritic(nn.Module):

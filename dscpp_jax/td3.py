@@ -154,13 +154,14 @@ def _dtypes(cfg: TD3Config):
 
 
 def _actor(cfg: TD3Config, action_dim: int) -> Actor:
+    dtype, io_dtype = _dtypes(cfg)
     return Actor(
         action_dim=action_dim,
         hidden=cfg.hidden,
         output_normalisation=cfg.output_normalisation,
         max_action=cfg.max_action,
-        dtype=_dtypes(cfg)[0],
-        io_dtype=_dtypes(cfg)[1],
+        dtype=dtype,
+        io_dtype=io_dtype,
     )
 
 
