@@ -346,3 +346,67 @@ def test_in_kernel_sampler():
     assert abs(np.corrcoef(x[:, :, :-1, 0].ravel(), x[:, :, 1:, 0].ravel())[0, 1]) < 0.01  # rows
     assert abs(np.corrcoef(x[:, 0].ravel(), x[:, 1].ravel())[0, 1]) < 0.01  # steps
     assert abs(np.corrcoef(x[0].ravel(), x[1].ravel())[0, 1]) < 0.01  # environments
+
+
+def _np_fp8(x):
+    """NumPy's own e4m3 rounding (ml_dtypes), after clipping to the finite range."""
+    import ml_dtypes
+    return np.clip(x, -448.0, 448.0).astype(ml_dtypes.float8_e4m3fn).astype(np.float64)
+
+
+def test_float8_hidden_layer_matches_numpy():
+    """hidden_dtype="float8" on the XLA path: the hidden-to-hidden layer's inputs and per-unit scaled
+    weights rounded to e4m3, everything else as float32 (a NumPy oracle of the kernel's rounding)."""
+    dcfg, st = _tiny_model(E=1)
+    w = np.asarray(st.params["params"]["Dense_1"]["kernel"][0], np.float64)
+    q, scale = mpc_lib.fp8_weights(jnp.asarray(w, jnp.float32))
+    assert q.dtype == jnp.float8_e4m3fn
+    np.testing.assert_allclose(np.max(np.abs(np.asarray(q, np.float64)), 0), 448.0)  # every unit uses the range
+    np.testing.assert_allclose(np.asarray(q, np.float64) * np.asarray(scale), w, rtol=2 ** -4)
+    x = np.array([1e4, -1e4, 0.3, -7.77, 1e-3], np.float32)
+    np.testing.assert_array_equal(np.asarray(mpc_lib.fp8_inputs(jnp.asarray(x)), np.float64), _np_fp8(x))
+
+    M, K = 24, 3
+    cfg = MPCConfig(num_samples=M, horizon=K, compute_dtype="float32", backend="xla", hidden_dtype="float8",
+                    use_value=False)
+    obs = np.array([[0.2, -0.1, 0.3, 0.0, 1.0]], np.float32)
+    acts = np.asarray(sample_action_sequences(jax.random.key(3), cfg, 1, 2))
+    xy, _ = rollout_xy(cfg, dcfg, st, obs, acts)
+
+    n = jax.tree.map(lambda v: np.asarray(v, np.float64), st.norm)
+    p = jax.tree.map(lambda v: np.asarray(v, np.float64)[0], st.params)["params"]
+    sc = np.abs(p["Dense_1"]["kernel"]).max(0, keepdims=True) / 448.0
+    s = np.repeat(obs, M, 0).astype(np.float64)
+    want = np.zeros((M, K, 2))
+    for j in range(K):
+        x = np.concatenate([(s - n.obs_mean) / n.obs_std, (acts[0, :, j] - n.act_mean) / n.act_std], -1)
+        h = x @ p["Dense_0"]["kernel"] + p["Dense_0"]["bias"]
+        h = np.where(h > 0, h, 0.01 * h)
+        h = (_np_fp8(h) @ _np_fp8(p["Dense_1"]["kernel"] / sc)) * sc + p["Dense_1"]["bias"]
+        h = np.where(h > 0, h, 0.01 * h)
+        s = s + (h @ p["Dense_2"]["kernel"] + p["Dense_2"]["bias"]) * n.delta_std + n.delta_mean
+        want[:, j] = s[:, :2]
+    np.testing.assert_allclose(np.asarray(xy[0]), want, rtol=1e-4, atol=1e-4)
+    f32, _ = rollout_xy(dataclasses.replace(cfg, hidden_dtype="bfloat16"), dcfg, st, obs, acts)
+    assert not np.allclose(np.asarray(f32[0]), want, rtol=1e-4, atol=1e-4)  # the rounding is there to see
+
+
+@pytest.mark.parametrize("mode,join", [("member", False), ("mean", True)])
+def test_fused_kernel_float8_matches_xla_float8(mode, join):
+    """The kernel's float8 hidden layer (weights stored transposed, scaled per unit) computes what the
+    XLA path's emulation computes, in both ensemble modes and with the joined first layer."""
+    dcfg, st = _tiny_model(E=2, obs_dim=29, act_dim=8)
+    cfg = MPCConfig(num_samples=64, horizon=3, compute_dtype="bfloat16", block_rows=32, hidden_chunk=16,
+                    out_chunk=16, ensemble_mode=mode, use_value=False, hidden_dtype="float8", join_input=join)
+    obs = jnp.asarray(np.random.default_rng(4).normal(size=(2, 29)).astype(np.float32))
+    goal = obs[:, :2] + 0.3
+    acts = sample_action_sequences(jax.random.key(2), cfg, 2, 8)
+    fd = mpc_lib._kernel_fold(cfg, dcfg, st)
+    SP, AP, HP, BM, Mp = mpc_lib._kernel_dims(cfg, 29, 8, fd.w_s.shape[2])
+    got = mpc_lib._rollout_pallas(cfg, dcfg, fd, obs, goal, mpc_lib._to_kernel_layout(cfg, acts, AP, Mp),
+                                  interpret=INTERPRET)["final"][:, :64, :29]
+    _, ref = mpc_lib._rollout_xla(cfg, dcfg, fd, obs, acts)
+    _, bf16 = mpc_lib._rollout_xla(dataclasses.replace(cfg, hidden_dtype="bfloat16"), dcfg, fd, obs, acts)
+    err = float(jnp.max(jnp.abs(got - ref)))
+    assert err < 0.1 * float(jnp.max(jnp.abs(bf16 - ref))), err  # nearer its emulation than bf16 is
+    np.testing.assert_allclose(got, ref, atol=0.02)
