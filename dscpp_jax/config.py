@@ -130,8 +130,6 @@ class Config:
     mpc_discount: float = 0.95
     mpc_dtype: str = "float32"
     mpc_backend: str = "auto"          # auto: the fused kernel on a GPU with bfloat16, else XLA
-    mpc_hidden_dtype: str = "bfloat16" # the dynamics' hidden-to-hidden layer in MPC rollouts:
-                                       # bfloat16, or float8 (e4m3, per-unit scaled weights)
     svm_backend: str = "auto"          # auto: the fused SMO kernel on a GPU, else the XLA loop
 
     # --- in-band evaluation (inside train_step) -------------------------------------------------
@@ -306,8 +304,6 @@ class Config:
              f"td3_sample_block must be >= 1 (1: one replay sample per gradient step), got "
              f"{self.td3_sample_block}")
         need(self.mpc_dtype in ("float32", "bfloat16"), "mpc_dtype must be float32 or bfloat16")
-        need(self.mpc_hidden_dtype in ("bfloat16", "float8"),
-             f"mpc_hidden_dtype={self.mpc_hidden_dtype!r}; choose bfloat16 or float8")
         need(self.td3_action_l2 >= 0, "td3_action_l2 must be >= 0 (0: off)")
         need(self.td3_dtype in ("float32", "bfloat16"), "td3_dtype must be float32 or bfloat16")
         need(self.physics in ("auto", "jax", "warp"),

@@ -61,9 +61,6 @@ __all__ = [
 ]
 
 _DTYPES = {"float32": jnp.float32, "bfloat16": jnp.bfloat16}
-HIDDEN_DTYPES = ("bfloat16", "float8")
-F8 = jnp.float8_e4m3fn
-F8_MAX = 448.0   # the largest finite e4m3fn value
 _JOIN_MIN_ENVS = 32   # join_input=None: the joined first layer from this many environments up
 
 
@@ -93,12 +90,6 @@ class MPCConfig:
     kernel_rng: in mpc_actions with the fused kernel, draw the action sequences inside the kernel
         (a counter-based hash of one jax.random seed per environment; uniform in [-1, 1) like
         jax.random.uniform) instead of writing them to memory first with jax.random (False).
-    hidden_dtype: operands of the dynamics model's hidden-to-hidden layer (about 89 % of a rollout's
-        products): "bfloat16" like the other layers, or "float8" (e4m3): the layer's inputs are
-        clipped to +-448 and rounded to e4m3, its weights are scaled per output unit so that each
-        unit's largest weight is 448 and rounded to e4m3, and the float32 accumulation is scaled
-        back. The fused kernel runs it on float8 tensor cores; the XLA path emulates the same
-        rounding (for tests and CPUs).
     join_input: feed state and action to the fused kernel's first layer as one interleaved operand
         (one matmul per hidden block instead of two; same result). None (default): joined from 32
         environments up, where it measured faster on an H200 (6,163 vs 5,961 decisions/s at 256
@@ -124,7 +115,6 @@ class MPCConfig:
     value_chunk: int = 128
     kernel_rng: bool = True
     join_input: Optional[bool] = None
-    hidden_dtype: str = "bfloat16"
 
     def __post_init__(self):
         if self.num_samples < 1 or self.horizon < 1:
@@ -137,8 +127,6 @@ class MPCConfig:
             raise ValueError(f"ensemble_mode must be 'member' or 'mean', got {self.ensemble_mode!r}")
         if self.backend not in ("auto", "xla", "pallas"):
             raise ValueError(f"backend must be 'auto', 'xla' or 'pallas', got {self.backend!r}")
-        if self.hidden_dtype not in HIDDEN_DTYPES:
-            raise ValueError(f"hidden_dtype must be one of {list(HIDDEN_DTYPES)}, got {self.hidden_dtype!r}")
         if self.value_dtype not in _DTYPES:
             raise ValueError(f"value_dtype must be one of {list(_DTYPES)}, got {self.value_dtype!r}")
         for name in ("block_rows", "hidden_chunk", "out_chunk", "value_chunk"):
@@ -208,45 +196,20 @@ def _leaky(x, slope):
     return jnp.maximum(x, slope * x) if slope <= 1.0 else jnp.where(x > 0, x, slope * x)
 
 
-def fp8_weights(w):
-    """Weights (..., in, out) -> (e4m3 weights, float32 scale (..., 1, out)): each output unit's
-    column is scaled so that its largest magnitude is 448, e4m3's largest finite value."""
-    w = w.astype(jnp.float32)
-    amax = jnp.max(jnp.abs(w), axis=-2, keepdims=True)
-    scale = jnp.where(amax > 0, amax * np.float32(1.0 / F8_MAX), np.float32(1.0))
-    return (w / scale).astype(F8), scale
-
-
-def fp8_inputs(x):
-    """A layer's inputs rounded to e4m3, clipped to its finite range first."""
-    return jnp.clip(x, -F8_MAX, F8_MAX).astype(F8)
-
-
-def _fp8_dot(x, w):
-    """x @ w with both operands rounded as the fused kernel's float8 layer rounds them, products
-    exact and summed in float32, then scaled back (the XLA emulation of ``hidden_dtype="float8"``)."""
-    q, scale = fp8_weights(w)
-    acc = jnp.dot(fp8_inputs(x).astype(jnp.float32), q.astype(jnp.float32),
-                  precision=jax.lax.Precision.HIGHEST)
-    return acc * scale[..., 0, :]
-
-
-def _member_step(fd: FoldedDynamics, e, s, a, slope, cdt, hidden_dtype="bfloat16"):
+def _member_step(fd: FoldedDynamics, e, s, a, slope, cdt):
     """One folded-model step of member e on rows s (..., obs), a (..., A)."""
     def mm(x, w):
         return jnp.dot(x.astype(cdt), w.astype(cdt), preferred_element_type=jnp.float32)
 
-    mm_hidden = _fp8_dot if hidden_dtype == "float8" else mm
     h = _leaky(mm(s, fd.w_s[e]) + mm(a, fd.w_a[e]) + fd.b_in[e], slope)
     for w, b in zip(fd.w_hidden, fd.b_hidden):
-        h = _leaky(mm_hidden(h, w[e]) + b[e], slope)
+        h = _leaky(mm(h, w[e]) + b[e], slope)
     return s + mm(h, fd.w_out[e]) + fd.b_out[e]
 
 
 def _rollout_xla(mpc_cfg: MPCConfig, dyn_cfg: DynamicsConfig, fd: FoldedDynamics, obs, actions):
     """obs (B, obs), actions (B, M, K, A) -> (xy (B, M, K, 2), final states (B, M, obs))."""
     cdt = _DTYPES[mpc_cfg.compute_dtype]
-    hdt = mpc_cfg.hidden_dtype
     slope = dyn_cfg.negative_slope
     B, M, K, A = actions.shape
     E = fd.w_s.shape[0]
@@ -254,10 +217,10 @@ def _rollout_xla(mpc_cfg: MPCConfig, dyn_cfg: DynamicsConfig, fd: FoldedDynamics
     acts = jnp.moveaxis(actions, 2, 0)  # (K, B, M, A)
 
     if E == 1:
-        step = lambda s, a: _member_step(fd, 0, s, a, slope, cdt, hdt)
+        step = lambda s, a: _member_step(fd, 0, s, a, slope, cdt)
     elif mpc_cfg.ensemble_mode == "mean":
         def step(s, a):
-            return jax.vmap(lambda e: _member_step(fd, e, s, a, slope, cdt, hdt))(jnp.arange(E)).mean(0)
+            return jax.vmap(lambda e: _member_step(fd, e, s, a, slope, cdt))(jnp.arange(E)).mean(0)
     else:  # one member per sequence: block j of block_rows sequences uses member j % E
         BM = mpc_cfg.block_rows
         nbp = -(-(-(-M // BM)) // E) * E  # blocks, rounded up to a multiple of E
@@ -266,7 +229,7 @@ def _rollout_xla(mpc_cfg: MPCConfig, dyn_cfg: DynamicsConfig, fd: FoldedDynamics
         def step(s, a):
             sp = jnp.pad(s, ((0, 0), (0, pad), (0, 0))).reshape(B, nbp // E, E, BM, -1)
             ap = jnp.pad(a, ((0, 0), (0, pad), (0, 0))).reshape(B, nbp // E, E, BM, -1)
-            out = jax.vmap(lambda e, si, ai: _member_step(fd, e, si, ai, slope, cdt, hdt),
+            out = jax.vmap(lambda e, si, ai: _member_step(fd, e, si, ai, slope, cdt),
                            in_axes=(0, 2, 2), out_axes=2)(jnp.arange(E), sp, ap)
             return out.reshape(B, nbp * BM, -1)[:, :M]
 
@@ -395,27 +358,17 @@ def _kernel_rng_actions(seeds, K, Mp, AP, act_dim, t=None, rows=None):
     return _hash_uniform(ctr, seeds[:, :, None]).astype(jnp.bfloat16)
 
 
-def _kernel_weights(fd: FoldedDynamics, SP, AP, HP, hidden_dtype="bfloat16"):
-    """The dynamics' padded kernel operands; with float8 the hidden layer's weights come
-    transposed, (E, out, in) (e4m3 tensor cores take the right operand K-major), and the tuple
-    ends with their scale (E, 1, HP)."""
+def _kernel_weights(fd: FoldedDynamics, SP, AP, HP):
     E = fd.w_s.shape[0]
     bf = jnp.bfloat16
     ws = _pad_to(fd.w_s, (E, SP, HP)).astype(bf)
     wa = _pad_to(fd.w_a, (E, AP, HP)).astype(bf)
     b1 = _pad_to(fd.b_in, (E, HP)).astype(jnp.float32)[:, None, :]
-    w2 = _pad_to(fd.w_hidden[0], (E, HP, HP))
-    extra = ()
-    if hidden_dtype == "float8":
-        w2, scale = fp8_weights(w2)
-        w2 = jnp.swapaxes(w2, 1, 2)
-        extra = (scale,)
-    else:
-        w2 = w2.astype(bf)
+    w2 = _pad_to(fd.w_hidden[0], (E, HP, HP)).astype(bf)
     b2 = _pad_to(fd.b_hidden[0], (E, HP)).astype(jnp.float32)[:, None, :]
     w3 = _pad_to(fd.w_out, (E, HP, SP)).astype(bf)
     b3 = _pad_to(fd.b_out, (E, SP)).astype(jnp.float32)[:, None, :]
-    return (ws, wa, b1, w2, b2, w3, b3) + extra
+    return ws, wa, b1, w2, b2, w3, b3
 
 
 def _kernel_dims(mpc_cfg: MPCConfig, obs_dim, act_dim, hidden):
@@ -498,8 +451,7 @@ def _rollout_pallas(mpc_cfg: MPCConfig, dyn_cfg: DynamicsConfig, fd: FoldedDynam
     elif acts_k.shape != (B, K, Mp, AP):
         raise ValueError(f"kernel actions must be {(B, K, Mp, AP)}, got {acts_k.shape}")
 
-    fp8 = mpc_cfg.hidden_dtype == "float8"
-    ws, wa, b1, w2, b2, w3, b3, *w2_scale = _kernel_weights(fd, SP, AP, HP, mpc_cfg.hidden_dtype)
+    ws, wa, b1, w2, b2, w3, b3 = _kernel_weights(fd, SP, AP, HP)
     join_wanted = B >= _JOIN_MIN_ENVS if mpc_cfg.join_input is None else mpc_cfg.join_input
     join = join_wanted and AP <= SP
     if join and not draw:  # explicit actions: widen to the state's lanes for the interleaved operand
@@ -579,7 +531,6 @@ def _rollout_pallas(mpc_cfg: MPCConfig, dyn_cfg: DynamicsConfig, fd: FoldedDynam
         return qs
 
     def kernel(s0_ref, g_ref, a_ref, ws_ref, wa_ref, b1_ref, w2_ref, b2_ref, w3_ref, b3_ref, *rest):
-        s2_ref, rest = (rest[0], rest[1:]) if fp8 else (None, rest)
         vrefs, outs = rest[:len(vweights)], list(rest[len(vweights):])
         cost_ref = outs.pop(0)
         sk_ref = outs.pop(0) if want_final else None
@@ -612,24 +563,17 @@ def _rollout_pallas(mpc_cfg: MPCConfig, dyn_cfg: DynamicsConfig, fd: FoldedDynam
                     acc = jnp.dot(sb, W(ws_ref, e, slice(None), pl.ds(k * CH, CH)), preferred_element_type=f32)
                     acc = acc + jnp.dot(a, W(wa_ref, e, slice(None), pl.ds(k * CH, CH)), preferred_element_type=f32)
                 acc = acc + W(b1_ref, e, slice(None), pl.ds(k * CH, CH))
-                h1.append(fp8_inputs(leaky(acc)) if fp8 else leaky(acc).astype(bf))
+                h1.append(leaky(acc).astype(bf))
 
             # Layer 2 and the output layer, one block of NC hidden units at a time. The loop is a
             # real loop whose weight loads depend on its index, so the compiler cannot hoist all
             # weight tiles out of the K-step loop (they would not fit in shared memory).
-            def layer2(k, c0):  # hidden block k's contribution to output units c0 .. c0 + NC
-                if fp8:  # weights stored (out, in): contract both operands' last axes
-                    return jax.lax.dot_general(h1[k], W(w2_ref, e, pl.ds(c0, NC), pl.ds(k * CH, CH)),
-                                               (((1,), (1,)), ((), ())), preferred_element_type=f32)
-                return jnp.dot(h1[k], W(w2_ref, e, pl.ds(k * CH, CH), pl.ds(c0, NC)), preferred_element_type=f32)
-
             def out_chunk(c, ds):
                 c0 = pl.multiple_of(c * NC, NC)
-                acc = layer2(0, c0)
+                acc = jnp.dot(h1[0], W(w2_ref, e, pl.ds(0, CH), pl.ds(c0, NC)), preferred_element_type=f32)
                 for k in range(1, nH):
-                    acc = acc + layer2(k, c0)
-                if fp8:
-                    acc = acc * W(s2_ref, e, slice(None), pl.ds(c0, NC))
+                    acc = acc + jnp.dot(h1[k], W(w2_ref, e, pl.ds(k * CH, CH), pl.ds(c0, NC)),
+                                        preferred_element_type=f32)
                 acc = acc + W(b2_ref, e, slice(None), pl.ds(c0, NC))
                 h2 = leaky(acc).astype(bf)
                 return ds + jnp.dot(h2, W(w3_ref, e, pl.ds(c0, NC), slice(None)), preferred_element_type=f32)
@@ -681,7 +625,7 @@ def _rollout_pallas(mpc_cfg: MPCConfig, dyn_cfg: DynamicsConfig, fd: FoldedDynam
          pl.BlockSpec((None, K, BM, SP if join else AP), lambda b, i: (b, 0, i, 0))),
         wspec(((2 if join else 1) * SP, HP)), wspec((AP, HP)), wspec((1, HP)), wspec((HP, HP)), wspec((1, HP)),
         wspec((HP, SP)), wspec((1, SP)),
-    ] + ([wspec((1, HP))] if fp8 else [])
+    ]
     row_spec = pl.BlockSpec((1, BM), lambda b, i: (b, i))
     out_specs = [row_spec]
     out_shape = [jax.ShapeDtypeStruct((B, Mp), f32)]
@@ -712,7 +656,7 @@ def _rollout_pallas(mpc_cfg: MPCConfig, dyn_cfg: DynamicsConfig, fd: FoldedDynam
                                       bytes_accessed=int(B * Mp * ((0 if draw else K * AP * 2) + (SP * 4 if want_final else 0) + 16))),
         name="mpc_rollout",
         **kwargs,
-    )(s0, g, acts_k, ws, wa, b1, w2, b2, w3, b3, *w2_scale, *vweights)
+    )(s0, g, acts_k, ws, wa, b1, w2, b2, w3, b3, *vweights)
     outs = list(outs)
     res = {"cost": outs.pop(0)}
     if want_final:
@@ -722,12 +666,6 @@ def _rollout_pallas(mpc_cfg: MPCConfig, dyn_cfg: DynamicsConfig, fd: FoldedDynam
         qs = jnp.stack(outs) + c_b3[:, None, None]  # (heads, B, Mp)
         res["value"] = jnp.min(qs, axis=0)
     return res
-
-
-def _kernel_fold(mpc_cfg: MPCConfig, dyn_cfg: DynamicsConfig, dyn_state: DynamicsState) -> FoldedDynamics:
-    """The folded model the kernel reads: bf16 weights, or float32 where the hidden layer is
-    rounded to float8 (once, from float32, as the XLA path rounds it)."""
-    return dynamics_fold(dyn_cfg, dyn_state, jnp.float32 if mpc_cfg.hidden_dtype == "float8" else jnp.bfloat16)
 
 
 def _to_kernel_layout(mpc_cfg: MPCConfig, actions, AP, Mp):
@@ -802,7 +740,7 @@ def sequence_costs(mpc_cfg: MPCConfig, dyn_cfg: DynamicsConfig, dyn_state: Dynam
     if backend == "xla":
         return _xla_sequence_costs(mpc_cfg, dyn_cfg, dyn_state, obs, goal, actions, value_fn, value_net)
     _check_pallas(mpc_cfg, dyn_cfg)
-    fd = _kernel_fold(mpc_cfg, dyn_cfg, dyn_state)
+    fd = dynamics_fold(dyn_cfg, dyn_state, jnp.bfloat16)
     SP, AP, HP, BM, Mp = _kernel_dims(mpc_cfg, obs.shape[-1], actions.shape[-1], fd.w_s.shape[2])
     acts_k = _to_kernel_layout(mpc_cfg, actions, AP, Mp)
     return _finish_pallas(mpc_cfg, fd, obs, goal, acts_k, value_fn, value_net, M, dyn_cfg, interpret)
@@ -854,7 +792,7 @@ def mpc_actions(mpc_cfg: MPCConfig, dyn_cfg: DynamicsConfig, dyn_state: Dynamics
     else:
         _check_pallas(mpc_cfg, dyn_cfg)
         interpret = jax.default_backend() != "gpu"   # off a GPU the kernel can only be interpreted
-        fd = _kernel_fold(mpc_cfg, dyn_cfg, dyn_state)
+        fd = dynamics_fold(dyn_cfg, dyn_state, jnp.bfloat16)
         SP, AP, HP, BM, Mp = _kernel_dims(mpc_cfg, obs.shape[-1], act_dim, fd.w_s.shape[2])
         if mpc_cfg.kernel_rng:  # the kernel draws the sequences; recover the chosen first actions
             seeds = _rng_seeds(key, B)

@@ -83,7 +83,7 @@ def _mpc_variant(name):
     Suffixes: "_join" / "_split" state and action as one first-layer operand / as two (default:
     joined from 32 environments up); "_krng" / "_jrng" action sequences drawn inside the kernel / by jax.random; "_vbf16" value_fn matmuls in single bf16 passes (XLA value); "_xv" value through XLA
     after the kernel (value_fn, as before the fused value); "_fv32" fused value with float32 (TF32)
-    operands; "_fp8" the dynamics' hidden layer on float8 (e4m3) operands; "_mean" ensemble mean. Pallas names: pallas_BM<rows>_W<warps>_S<stages>_C<hidden
+    operands; "_mean" ensemble mean. Pallas names: pallas_BM<rows>_W<warps>_S<stages>_C<hidden
     block>_N<out block>_VC<value block>; "pallas" alone is the library default tiling.
     """
     from dscpp_jax.mpc import MPCConfig
@@ -103,9 +103,6 @@ def _mpc_variant(name):
     if name.endswith("_vbf16"):
         cfg, prec = _mpc_variant(name[:-len("_vbf16")])
         return dataclasses.replace(cfg, value_precision="bfloat16"), prec
-    if name.endswith("_fp8"):
-        cfg, prec = _mpc_variant(name[:-len("_fp8")])
-        return dataclasses.replace(cfg, hidden_dtype="float8"), prec
     if name.endswith("_mean"):
         cfg, prec = _mpc_variant(name[:-len("_mean")])
         return dataclasses.replace(cfg, ensemble_mode="mean"), prec
@@ -501,14 +498,13 @@ def value_quality(data_path, out_npz, num_samples, horizon, n_starts, train_step
     pcfg, _ = _mpc_variant(pallas_variant)
     pk = {f.name: getattr(pcfg, f.name) for f in dataclasses.fields(pcfg)
           if f.name in ("backend", "compute_dtype", "block_rows", "num_warps", "num_stages", "hidden_chunk",
-                        "out_chunk", "value_chunk", "join_input", "hidden_dtype")}
+                        "out_chunk", "value_chunk", "join_input")}
     acts = sample_action_sequences(jax.random.key(123), base, n_starts, 8)
     variants = {
         "tdv_f32_highest": (dict(backend="xla", compute_dtype="float32"), "highest", vf, None),
         "tdv_pallas_xla_value": (dict(pk, fuse_value=False), None, vf, None),
         "tdv_pallas_fused_bf16": (dict(pk, value_dtype="bfloat16"), None, None, net),
         "tdv_pallas_fused_f32": (dict(pk, value_dtype="float32"), None, None, net),
-        "tdv_pallas_fused_bf16_fp8": (dict(pk, value_dtype="bfloat16", hidden_dtype="float8"), None, None, net),
     }
     jobs = {}
     for name, (kw, prec, fn, vn) in variants.items():
