@@ -56,6 +56,10 @@ FAST_COMPILE = "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_
 
 
 def test_reproduce_trains_draws_reports_then_skips(tmp_path, capsys, monkeypatch):
+    # XLA reads its flags when this process's backend starts: start it first, so that only the
+    # train subprocesses compile without optimisation and later tests here are not affected
+    import jax
+    jax.devices()
     monkeypatch.setenv("XLA_FLAGS", f"{os.environ.get('XLA_FLAGS', '')} {FAST_COMPILE}".strip())
     runs, out = str(tmp_path / "runs"), str(tmp_path / "out")
     assert reproduce.main(_args(runs, out)) == 0
