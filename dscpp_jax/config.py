@@ -104,7 +104,8 @@ class Config:
     td3_dtype: str = "float32"         # matmul operands and activations of TD3's networks:
                                        # float32 or bfloat16 (the hidden layers; the first and
                                        # output layers, parameters, optimiser state, losses
-                                       # and targets stay float32)
+                                       # and targets stay float32; the ant fast preset's
+                                       # model-free learners use bfloat16)
     shared_critic: bool = True         # one goal-conditioned TD3 for every option (the paper's
                                        # DSC++); False: one TD3 per option slot, each learning
                                        # from its own transitions (appendix Figure 2; model free)
@@ -392,7 +393,8 @@ def preset(name: str = "fast", env: str = "point_u_maze", algo: str = "mb_dscpp"
       1000-step episodes, 4,096 x 7 MPC in bfloat16 (the fused kernel on a GPU), 0.1 model steps
       per transition; TD3 at 0.25 steps per transition, batch 256 and 1e-4 (model based) or the
       paper's 1 step per transition at batch 512 and 3e-4 with an L2 action penalty of 1 (model
-      free); TD targets clipped to [-1 / (1 - discount), 0] (keeps the model-based critic stable);
+      free; bf16 in TD3's hidden layers, as fast in a seed group and as good on the ant, float32
+      for the model-based learners); TD targets clipped to [-1 / (1 - discount), 0] (keeps the model-based critic stable);
       32 minibatches per replay sampling call (speed); RK4 (fewer tip-overs); gestation 5 (10 on
       four rooms, appendix Table 4); up to 24 options; evaluation inside training (32 in-band
       envs, success every iteration) and 100 episodes at the end instead of periodic
@@ -433,6 +435,7 @@ def preset(name: str = "fast", env: str = "point_u_maze", algo: str = "mb_dscpp"
             mpc_dtype="bfloat16", max_options=24, td3_clip_targets=True,
             ant_integrator="RK4", td3_sample_block=32,
             td3_action_l2=0.0 if algo in MODEL_BASED_ALGOS else 1.0,
+            td3_dtype="float32" if algo in MODEL_BASED_ALGOS else "bfloat16",
             inband_eval_envs=32, eval_every=0, eval_episodes=100, checkpoint_every=25,
         )
     base.update(overrides)

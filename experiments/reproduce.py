@@ -65,6 +65,10 @@ A2_SETS = ("shared_critic=false",)
 # Config fields that `train --resume` accepts (schedule and host-side cadences)
 RESUME_FIELDS = {"total_env_steps", "total_episodes", "eval_every", "eval_episodes",
                  "checkpoint_every", "keep_checkpoints", "log_every"}
+# Settings every group of the driver trains with, before the user's --set: the committed paper
+# runs were trained with float32 TD3, which the ant preset no longer uses for the model-free
+# learners, so a group trained or retrained by the driver matches the others in its figures.
+PAPER_SETS = ("td3_dtype=float32",)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -198,11 +202,16 @@ def _last_row(run_dir: str) -> Optional[dict]:
     return {k: v[-1] for k, v in m.items()}
 
 
+def _sets(exp: Exp, args) -> list:
+    """The --set pairs of one group: the driver's own, the user's, the experiment's (later wins)."""
+    return list(PAPER_SETS) + list(args.set) + list(exp.sets)
+
+
 def schedule(exp: Exp, args) -> tuple:
     """(total_episodes, total_env_steps): the episode budget binds; the step cap is loose enough
     for it ((episodes + num_envs) x episode length) unless --total-steps gives one."""
     from dscpp_jax.config import preset
-    kw = _overrides(list(args.set) + list(exp.sets))
+    kw = _overrides(_sets(exp, args))
     kw.pop("total_env_steps", None)
     cfg = preset(args.preset, exp.run_env(args.env_map), exp.algo, **kw)
     steps = args.total_steps or (exp.episodes + cfg.num_envs) * cfg.episode_length
@@ -242,14 +251,16 @@ def _eval_iteration(seed_dir: str) -> Optional[int]:
 
 def config_mismatch(group_dir: str, exp: Exp, args) -> list:
     """Fields the group was made with that differ from what this call asks for."""
+    from dscpp_jax.config import Config
     with open(os.path.join(group_dir, "group.json")) as f:
         have = json.load(f)["config"]
-    want = {k: v for k, v in _overrides(list(args.set) + list(exp.sets)).items()
+    want = {k: v for k, v in _overrides(_sets(exp, args)).items()
             if k not in RESUME_FIELDS}
     want.update(env=exp.run_env(args.env_map), algo=exp.algo, subgoal=exp.subgoal,
                 preset=args.preset)
-    return [f"{k}={have.get(k)!r} (asked: {v!r})" for k, v in sorted(want.items())
-            if have.get(k) != v]
+    # a field added after the group was made ran at that field's default (e.g. td3_dtype)
+    had = {k: have.get(k, getattr(Config, k, None)) for k in want}
+    return [f"{k}={had[k]!r} (asked: {v!r})" for k, v in sorted(want.items()) if had[k] != v]
 
 
 # ------------------------------------------------------------------------------------------------
@@ -271,7 +282,7 @@ def train_command(exp: Exp, group_dir: str, args, resume: bool,
     budget = args.time_budget if budget is None else budget
     episodes, total = schedule(exp, args)
     cmd = [sys.executable, "-m", "dscpp_jax.cli", "train"]
-    sets = list(args.set) + list(exp.sets)
+    sets = _sets(exp, args)
     if resume:
         cmd += ["--resume", group_dir]
         sets = [s for s in sets if s.split("=", 1)[0].strip().replace("-", "_") in RESUME_FIELDS]
@@ -1135,7 +1146,8 @@ def write_readme(data: Data, args, figures: dict, status: dict) -> str:
         f"Protocol this call asked for: preset `{args.preset}`, seeds {args.seeds}, "
         f"{args.episodes} episodes "
         f"(Figure 4 / appendix Figure 1: {args.fig4_episodes} on Ant-Reacher), success from the "
-        "task start, mean ± standard error over seeds"
+        "task start, mean ± standard error over seeds; every group with "
+        + ", ".join(f"`{x}`" for x in PAPER_SETS)
         + (f"; overrides: {', '.join(args.set)}" if args.set else "")
         + (f"; envs replaced: {', '.join(f'{k} -> {v}' for k, v in args.env_map.items())}"
            if args.env_map else "") + ".",

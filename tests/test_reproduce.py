@@ -3,6 +3,7 @@ with one critic per option for appendix Figure 2), two seeds, a few iterations e
 that has runs is drawn with its CSV, the README checks each claim, and a second call trains nothing
 (finished groups are skipped)."""
 import csv
+import dataclasses
 import hashlib
 import json
 import os
@@ -491,3 +492,32 @@ def test_one_train_call_can_take_several_gpus(tmp_path, capsys, monkeypatch):
                     "--out", out])
     assert "u_maze-td3_her-g0-4: skipped (finished)" in capsys.readouterr().out
     assert [(c[c.index("--seeds") + 1], gpus) for c, gpus in calls] == [("0-7", "0,1,2,3")]
+
+
+def test_driver_trains_td3_in_float32_and_older_groups_still_match(tmp_path):
+    """The committed paper runs trained TD3 in float32, which the ant preset no longer does for
+    model-free learners: the driver asks for float32 in every group, and a group made before
+    `td3_dtype` existed (no such field in its group.json) counts as float32, not as a mismatch."""
+    args = reproduce.build_parser().parse_args(["--runs-root", str(tmp_path), "--out", str(tmp_path)])
+    args.env_map = {}
+    exp = reproduce.Exp("four_rooms", "mf_dscpp", 2001, "0-4")
+    cmd = " ".join(reproduce.train_command(exp, str(tmp_path / "g"), args, resume=False))
+    assert "--set td3_dtype=float32" in cmd
+    from dscpp_jax.config import preset
+    cfg = dataclasses.asdict(preset("fast", "four_rooms", "mf_dscpp"))
+    assert cfg["td3_dtype"] == "bfloat16"   # what the preset alone would give
+    gdir = tmp_path / "grp"
+    gdir.mkdir()
+
+    def mismatch(config):
+        (gdir / "group.json").write_text(json.dumps({"seeds": [0], "config": config}))
+        return reproduce.config_mismatch(str(gdir), exp, args)
+
+    older = {k: v for k, v in cfg.items() if k != "td3_dtype"}
+    assert mismatch(older) == []
+    assert mismatch({**cfg, "td3_dtype": "float32"}) == []
+    assert mismatch(cfg) == ["td3_dtype='bfloat16' (asked: 'float32')"]
+    # the user's --set still wins over the driver's own
+    args.set = ["td3_dtype=bfloat16"]
+    assert mismatch(cfg) == [] and "--set td3_dtype=bfloat16" in " ".join(
+        reproduce.train_command(exp, str(tmp_path / "g"), args, resume=False))

@@ -54,6 +54,12 @@ def test_presets_keep_paper_constants():
         f = preset("fast", "four_rooms", algo)
         assert (T.td3_config(f).action_l2, f.td3_sample_block) == (l2, 32), algo
     assert preset("fast", "point_u_maze", "mf_dscpp").td3_action_l2 == 0.0
+    # bf16 in TD3's hidden layers for the ant's model-free learners; float32 elsewhere
+    for algo, dt in (("mf_dscpp", "bfloat16"), ("td3_her", "bfloat16"), ("dsc", "bfloat16"),
+                     ("mb_dscpp", "float32"), ("mb_flat", "float32")):
+        assert T.td3_config(preset("fast", "four_rooms", algo)).compute_dtype == dt, algo
+    assert preset("fast", "point_u_maze", "mf_dscpp").td3_dtype == "float32"
+    assert preset("paper", "u_maze", "mf_dscpp").td3_dtype == "float32"
     # the ant's integrator reaches the MuJoCo model; point-mass envs ignore it
     import mujoco
     assert T.make_env(p).mj_model.opt.integrator == mujoco.mjtIntegrator.mjINT_RK4   # D4RL's
