@@ -258,8 +258,8 @@ def config_mismatch(group_dir: str, exp: Exp, args) -> list:
             if k not in RESUME_FIELDS}
     want.update(env=exp.run_env(args.env_map), algo=exp.algo, subgoal=exp.subgoal,
                 preset=args.preset)
-    # a field added after the group was made ran at that field's default (e.g. td3_dtype)
-    had = {k: have.get(k, getattr(Config, k, None)) for k in want}
+    made = Config.from_dict(have)   # fields added since the group was made: what it ran with
+    had = {k: getattr(made, k, have.get(k)) for k in want}
     return [f"{k}={had[k]!r} (asked: {v!r})" for k, v in sorted(want.items()) if had[k] != v]
 
 
