@@ -69,6 +69,9 @@ RESUME_FIELDS = {"total_env_steps", "total_episodes", "eval_every", "eval_episod
 # runs were trained with float32 TD3, which the ant preset no longer uses for the model-free
 # learners, so a group trained or retrained by the driver matches the others in its figures.
 PAPER_SETS = ("td3_dtype=float32",)
+# ... and per env: the committed ant U-maze groups planned with 4,096 MPC samples per decision,
+# which the preset lowered to 2,048 there.
+PAPER_ENV_SETS = {"u_maze": ("mpc_samples=4096",)}
 
 
 # ------------------------------------------------------------------------------------------------
@@ -204,7 +207,8 @@ def _last_row(run_dir: str) -> Optional[dict]:
 
 def _sets(exp: Exp, args) -> list:
     """The --set pairs of one group: the driver's own, the user's, the experiment's (later wins)."""
-    return list(PAPER_SETS) + list(args.set) + list(exp.sets)
+    own = list(PAPER_SETS) + list(PAPER_ENV_SETS.get(exp.run_env(args.env_map), ()))
+    return own + list(args.set) + list(exp.sets)
 
 
 def schedule(exp: Exp, args) -> tuple:
@@ -1148,6 +1152,7 @@ def write_readme(data: Data, args, figures: dict, status: dict) -> str:
         f"(Figure 4 / appendix Figure 1: {args.fig4_episodes} on Ant-Reacher), success from the "
         "task start, mean ± standard error over seeds; every group with "
         + ", ".join(f"`{x}`" for x in PAPER_SETS)
+        + "".join(f" (`{', '.join(v)}` on {k})" for k, v in PAPER_ENV_SETS.items())
         + (f"; overrides: {', '.join(args.set)}" if args.set else "")
         + (f"; envs replaced: {', '.join(f'{k} -> {v}' for k, v in args.env_map.items())}"
            if args.env_map else "") + ".",

@@ -497,7 +497,8 @@ def test_one_train_call_can_take_several_gpus(tmp_path, capsys, monkeypatch):
 def test_driver_trains_td3_in_float32_and_older_groups_still_match(tmp_path):
     """The committed paper runs trained TD3 in float32, which the ant preset no longer does for
     model-free learners: the driver asks for float32 in every group, and a group made before
-    `td3_dtype` existed (no such field in its group.json) counts as float32, not as a mismatch."""
+    `td3_dtype` existed (no such field in its group.json) counts as float32, not as a mismatch.
+    Likewise the ant U-maze groups planned with 4,096 MPC samples, the preset's 2,048 since."""
     args = reproduce.build_parser().parse_args(["--runs-root", str(tmp_path), "--out", str(tmp_path)])
     args.env_map = {}
     exp = reproduce.Exp("four_rooms", "mf_dscpp", 2001, "0-4")
@@ -521,3 +522,15 @@ def test_driver_trains_td3_in_float32_and_older_groups_still_match(tmp_path):
     args.set = ["td3_dtype=bfloat16"]
     assert mismatch(cfg) == [] and "--set td3_dtype=bfloat16" in " ".join(
         reproduce.train_command(exp, str(tmp_path / "g"), args, resume=False))
+    # the ant U-maze groups plan with 4,096 MPC samples, as committed; other envs as the preset
+    args.set = []
+    u = reproduce.Exp("u_maze", "mb_dscpp", 2001, "0-4")
+    assert "--set mpc_samples=4096" in " ".join(
+        reproduce.train_command(u, str(tmp_path / "g"), args, resume=False))
+    assert "mpc_samples" not in cmd
+    ucfg = dataclasses.asdict(preset("fast", "u_maze", "mb_dscpp"))
+    (gdir / "group.json").write_text(json.dumps({"seeds": [0], "config": ucfg}))
+    assert reproduce.config_mismatch(str(gdir), u, args) == ["mpc_samples=2048 (asked: 4096)"]
+    args.env_map = {"u_maze": "point_u_maze"}     # the point twin keeps its own preset
+    assert "mpc_samples" not in " ".join(
+        reproduce.train_command(u, str(tmp_path / "g"), args, resume=False))

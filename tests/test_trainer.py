@@ -60,6 +60,10 @@ def test_presets_keep_paper_constants():
         assert T.td3_config(preset("fast", "four_rooms", algo)).compute_dtype == dt, algo
     assert preset("fast", "point_u_maze", "mf_dscpp").td3_dtype == "float32"
     assert preset("paper", "u_maze", "mf_dscpp").td3_dtype == "float32"
+    # MPC action sequences per decision: 2,048 on the ant U-maze, 4,096 on the other ant envs
+    assert [preset("fast", e).mpc_samples for e in ("u_maze", "four_rooms", "medium", "large",
+                                                      "ant_reacher")] == [2048] + [4096] * 4
+    assert preset("fast", "point_u_maze").mpc_samples == 128
     # the ant's integrator reaches the MuJoCo model; point-mass envs ignore it
     import mujoco
     assert T.make_env(p).mj_model.opt.integrator == mujoco.mjtIntegrator.mjINT_RK4   # D4RL's
