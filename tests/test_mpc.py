@@ -346,3 +346,62 @@ def test_in_kernel_sampler():
     assert abs(np.corrcoef(x[:, :, :-1, 0].ravel(), x[:, :, 1:, 0].ravel())[0, 1]) < 0.01  # rows
     assert abs(np.corrcoef(x[:, 0].ravel(), x[:, 1].ravel())[0, 1]) < 0.01  # steps
     assert abs(np.corrcoef(x[0].ravel(), x[1].ravel())[0, 1]) < 0.01  # environments
+
+
+def _np_upright(states, qi=3):
+    q = states[..., qi:qi + 4]
+    return (q[..., 0] ** 2 + q[..., 3] ** 2 - q[..., 1] ** 2 - q[..., 2] ** 2) / np.sum(q ** 2, -1)
+
+
+def test_upright_cost_matches_numpy():
+    rng = np.random.default_rng(4)
+    M, K = 32, 7
+    goal = np.array([0.5, 0.5])
+    pred = goal + np.cumsum(rng.normal(scale=0.35, size=(M, K, 2)), axis=1)
+    quats = rng.normal(size=(M, K, 4)) * 1.7            # unnormalised, like a model's prediction
+    states = np.concatenate([pred, rng.normal(size=(M, K, 1)), quats], -1)
+    up = _np_upright(states)
+    assert (up < 0.5).any() and (up > 0.5).any()
+    values = rng.normal(size=M) * 5 - 10
+    cfg = MPCConfig(num_samples=M, horizon=K, upright_weight=20.0, upright_min=0.5)
+    got = mpc_cost(cfg, pred, goal, values, mpc_lib.upright(cfg, states))
+    tilt = 20.0 * np.sum(np.maximum(0.5 - up, 0.0) * 0.95 ** np.arange(K), -1)
+    np.testing.assert_allclose(got, _np_cost(pred, goal, values) + tilt, rtol=1e-5, atol=1e-4)
+    # the upright body and the one on its back
+    s = np.zeros((2, 7))
+    s[0, 3], s[1, 4] = 1.0, 1.0
+    np.testing.assert_allclose(mpc_lib.upright(cfg, s), [1.0, -1.0])
+    with pytest.raises(ValueError, match="needs pred_upright"):
+        mpc_cost(cfg, pred, goal, values)
+    with pytest.raises(ValueError, match="upright_weight must be >= 0"):
+        MPCConfig(upright_weight=-1.0)
+
+
+def test_fused_kernel_matches_xla_with_upright_cost():
+    dcfg, st = _tiny_model(E=1, obs_dim=29, act_dim=8)
+    cfg = MPCConfig(num_samples=64, horizon=3, compute_dtype="bfloat16", block_rows=32, hidden_chunk=16,
+                    out_chunk=16, upright_weight=5.0, upright_min=0.9)
+    obs = np.random.default_rng(2).normal(size=(2, 29)).astype(np.float32)
+    goal = obs[:, :2] + np.array([[0.5, 0.0], [0.0, -0.8]], np.float32)
+    acts = sample_action_sequences(jax.random.key(1), cfg, 2, 8)
+    vf = lambda s, g: -jnp.linalg.norm(s[:, :2] - g, axis=-1)
+    ref = sequence_costs(dataclasses.replace(cfg, backend="xla"), dcfg, st, obs, goal, acts, vf)
+    got = sequence_costs(cfg, dcfg, st, obs, goal, acts, vf, interpret=INTERPRET)
+    plain = sequence_costs(dataclasses.replace(cfg, backend="xla", upright_weight=0.0), dcfg, st, obs,
+                           goal, acts, vf)
+    assert float(jnp.max(jnp.abs(ref - plain))) > 0.1   # the tilt term is active
+    np.testing.assert_allclose(got, ref, rtol=1e-3, atol=5e-3)
+    # XLA float32 path against NumPy: rollout, then the tilt term of every predicted step
+    f32 = dataclasses.replace(cfg, backend="xla", compute_dtype="float32")
+    got32 = sequence_costs(f32, dcfg, st, obs, goal, acts, vf)
+    s = np.repeat(obs[:, None], 64, 1).astype(np.float64)
+    xy, ups = [], []
+    for j in range(3):
+        s = np.stack([_np_member_step(st, 0, s[b], np.asarray(acts)[b, :, j]) for b in range(2)])
+        xy.append(s[..., :2])
+        ups.append(_np_upright(s))
+    xy, ups = np.stack(xy, 2), np.stack(ups, 2)
+    for b in range(2):
+        v = -np.linalg.norm(s[b, :, :2] - goal[b], axis=-1)
+        tilt = 5.0 * np.sum(np.maximum(0.9 - ups[b], 0.0) * 0.95 ** np.arange(3), -1)
+        np.testing.assert_allclose(got32[b], _np_cost(xy[b], goal[b], v) + tilt, rtol=1e-4, atol=1e-3)
