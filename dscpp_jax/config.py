@@ -29,7 +29,7 @@ MODEL_BASED_ALGOS = ("mb_dscpp", "mb_flat", "mb_flat_value")
 # Runs written since also record every default beside their config ("config_defaults").
 RETIRED_FIELDS: dict[str, Any] = dict(
     td3_upright_weight=0.0, td3_upright_min=0.5, td3_absorb_fallen=False,
-    gestation_patience=0)
+    mpc_upright_weight=0.0, mpc_upright_min=0.5, gestation_patience=0)
 # Fields only the host driver reads (the TrainState carries `Config.device_view()`).
 HOST_ONLY_DEFAULTS = dict(seed=0, total_env_steps=1, total_episodes=0, eval_every=0,
                           log_every=1, checkpoint_every=0, keep_checkpoints=1, preset="paper")
@@ -130,8 +130,6 @@ class Config:
     mpc_horizon: int = 7
     mpc_discount: float = 0.95
     mpc_dtype: str = "float32"
-    mpc_upright_weight: float = 0.0    # ant: cost per unit of predicted tilt below mpc_upright_min
-    mpc_upright_min: float = 0.5       # (0: off, the paper's eq. 2; see mpc.MPCConfig)
     mpc_backend: str = "auto"          # auto: the fused kernel on a GPU with bfloat16, else XLA
     svm_backend: str = "auto"          # auto: the fused SMO kernel on a GPU, else the XLA loop
 
@@ -317,11 +315,6 @@ class Config:
         for name in ("mpc_backend", "svm_backend"):
             need(getattr(self, name) in ("auto", "xla", "pallas"),
                  f"{name}={getattr(self, name)!r}; choose auto, xla or pallas")
-        need(self.mpc_upright_weight >= 0 and -1.0 <= self.mpc_upright_min <= 1.0,
-             "mpc_upright_weight must be >= 0 and mpc_upright_min in [-1, 1]")
-        need(self.mpc_upright_weight == 0 or not self.env.startswith("point_"),
-             "mpc_upright_weight needs a body that can tip over (the ant envs); the point mass has "
-             "no orientation: set it to 0")
         need(self.mpc_backend != "pallas" or self.mpc_dtype == "bfloat16",
              "mpc_backend=pallas computes in bfloat16: also set mpc_dtype=bfloat16 (or use "
              "mpc_backend=xla)")

@@ -12,11 +12,6 @@ original code, sequences whose final predicted state is already within tolerance
 largest V of that environment's batch. The first action of the cheapest sequence is executed.
 ``use_value=False`` drops the V term (the flat finite-horizon baseline of Nagabandi et al.).
 
-Optionally (``upright_weight > 0``; not in the paper) each predicted step also costs
-``upright_weight * max(0, upright_min - up(s_{j+1}))`` (discounted like c_j), where ``up`` is the
-world-z component of the body's z axis from the predicted quaternion at ``quat_index`` (w, x, y, z):
-1 upright, -1 on its back. It steers the plans away from states the model predicts to tip the ant.
-
 Two interchangeable back ends compute the rollouts:
 - ``"xla"``: plain JAX; all environments' sequences form one (envs * M)-row matmul chain. float32 or
   bfloat16 operands (float32 accumulation, float32 state).
@@ -53,8 +48,6 @@ from dscpp_jax.dynamics import DynamicsConfig, DynamicsState, FoldedDynamics, dy
 __all__ = [
     "MPCConfig",
     "mpc_cost",
-    "upright",
-    "upright_cost",
     "sample_action_sequences",
     "rollout_xy",
     "sequence_costs",
@@ -97,11 +90,6 @@ class MPCConfig:
     kernel_rng: in mpc_actions with the fused kernel, draw the action sequences inside the kernel
         (a counter-based hash of one jax.random seed per environment; uniform in [-1, 1) like
         jax.random.uniform) instead of writing them to memory first with jax.random (False).
-    upright_weight: cost per unit of predicted tilt below ``upright_min`` at each step (0: off, the
-        paper's eq. 2).
-    upright_min: the uprightness (world-z of the body's z axis, in [-1, 1]) below which a predicted
-        state costs.
-    quat_index: state index of the body quaternion's w (x, y, z follow); 3 for the ant.
     join_input: feed state and action to the fused kernel's first layer as one interleaved operand
         (one matmul per hidden block instead of two; same result). None (default): joined from 32
         environments up, where it measured faster on an H200 (6,163 vs 5,961 decisions/s at 256
@@ -127,9 +115,6 @@ class MPCConfig:
     value_chunk: int = 128
     kernel_rng: bool = True
     join_input: Optional[bool] = None
-    upright_weight: float = 0.0
-    upright_min: float = 0.5
-    quat_index: int = 3
 
     def __post_init__(self):
         if self.num_samples < 1 or self.horizon < 1:
@@ -148,9 +133,6 @@ class MPCConfig:
             v = getattr(self, name)
             if v < 16 or v & (v - 1):
                 raise ValueError(f"{name} must be a power of 2 >= 16, got {v}")
-        if self.upright_weight < 0 or not -1.0 <= self.upright_min <= 1.0 or self.quat_index < 0:
-            raise ValueError("upright_weight must be >= 0, upright_min in [-1, 1] and quat_index >= 0, got "
-                             f"{self.upright_weight}, {self.upright_min}, {self.quat_index}")
         if self.out_chunk > self.hidden_chunk or self.hidden_chunk % self.out_chunk:
             raise ValueError(f"out_chunk ({self.out_chunk}) must divide hidden_chunk ({self.hidden_chunk})")
 
@@ -182,29 +164,12 @@ def _terminal(mpc_cfg: MPCConfig, step_cost, final_at_goal, final_values, valid=
     return step_cost - jnp.float32(mpc_cfg.discount ** mpc_cfg.horizon) * v
 
 
-def upright(mpc_cfg: MPCConfig, states):
-    """World-z of the body's z axis from the (possibly unnormalised) quaternion in states (..., S)."""
-    q = jnp.asarray(states, jnp.float32)[..., mpc_cfg.quat_index:mpc_cfg.quat_index + 4]
-    sq = jnp.square(q)
-    return (sq[..., 0] + sq[..., 3] - sq[..., 1] - sq[..., 2]) / jnp.maximum(jnp.sum(sq, -1), 1e-6)
-
-
-def upright_cost(mpc_cfg: MPCConfig, pred_upright):
-    """(..., M, K) predicted uprightness of s_1..s_K -> (..., M) discounted tilt cost."""
-    tilt = jnp.maximum(jnp.float32(mpc_cfg.upright_min) - jnp.asarray(pred_upright, jnp.float32), 0.0)
-    return jnp.float32(mpc_cfg.upright_weight) * jnp.sum(
-        tilt * jnp.asarray(_discounts(mpc_cfg), jnp.float32), -1)
-
-
-def mpc_cost(mpc_cfg: MPCConfig, pred_xy, goal, final_values=None, pred_upright=None):
+def mpc_cost(mpc_cfg: MPCConfig, pred_xy, goal, final_values=None):
     """Eq. 2 cost of each sequence from its predicted positions.
 
     pred_xy (..., M, K, 2): xy of the predicted states s_1..s_K; goal (..., 2); final_values
-    (..., M) = V(s_K, g) or None (no terminal term); pred_upright (..., M, K): ``upright`` of
-    s_1..s_K, needed when ``upright_weight > 0``. Returns (..., M) costs (lower is better).
+    (..., M) = V(s_K, g) or None (no terminal term). Returns (..., M) costs (lower is better).
     """
-    if mpc_cfg.upright_weight > 0 and pred_upright is None:
-        raise ValueError("upright_weight > 0 needs pred_upright (the predicted states' uprightness)")
     pred_xy = jnp.asarray(pred_xy, jnp.float32)
     if pred_xy.shape[-2] != mpc_cfg.horizon or pred_xy.shape[-1] != 2:
         raise ValueError(f"pred_xy must be (..., M, K={mpc_cfg.horizon}, 2), got {pred_xy.shape}")
@@ -212,8 +177,6 @@ def mpc_cost(mpc_cfg: MPCConfig, pred_xy, goal, final_values=None, pred_upright=
     d2 = jnp.sum(jnp.square(pred_xy - goal), -1)  # (..., M, K)
     far = d2 > jnp.float32(mpc_cfg.goal_tolerance) ** 2
     step_cost = jnp.sum(far.astype(jnp.float32) * jnp.asarray(_discounts(mpc_cfg), jnp.float32), -1)
-    if mpc_cfg.upright_weight > 0:
-        step_cost = step_cost + upright_cost(mpc_cfg, pred_upright)
     if not mpc_cfg.use_value:
         final_values = None
     return _terminal(mpc_cfg, step_cost, ~far[..., -1], final_values)
@@ -245,8 +208,7 @@ def _member_step(fd: FoldedDynamics, e, s, a, slope, cdt):
 
 
 def _rollout_xla(mpc_cfg: MPCConfig, dyn_cfg: DynamicsConfig, fd: FoldedDynamics, obs, actions):
-    """obs (B, obs), actions (B, M, K, A) -> (xy (B, M, K, 2), final states (B, M, obs),
-    uprightness (B, M, K) when ``upright_weight > 0``, else None)."""
+    """obs (B, obs), actions (B, M, K, A) -> (xy (B, M, K, 2), final states (B, M, obs))."""
     cdt = _DTYPES[mpc_cfg.compute_dtype]
     slope = dyn_cfg.negative_slope
     B, M, K, A = actions.shape
@@ -271,23 +233,19 @@ def _rollout_xla(mpc_cfg: MPCConfig, dyn_cfg: DynamicsConfig, fd: FoldedDynamics
                            in_axes=(0, 2, 2), out_axes=2)(jnp.arange(E), sp, ap)
             return out.reshape(B, nbp * BM, -1)[:, :M]
 
-    tilt = mpc_cfg.upright_weight > 0
-
     def body(s, a):
         s = step(s, a)
-        return s, (s[..., :2], upright(mpc_cfg, s) if tilt else None)
+        return s, s[..., :2]
 
-    final, (xy, up) = jax.lax.scan(body, s0, acts)
-    return jnp.moveaxis(xy, 0, 2), final, (jnp.moveaxis(up, 0, 2) if tilt else None)
+    final, xy = jax.lax.scan(body, s0, acts)
+    return jnp.moveaxis(xy, 0, 2), final
 
 
 def rollout_xy(mpc_cfg: MPCConfig, dyn_cfg: DynamicsConfig, dyn_state: DynamicsState, obs, actions):
     """Predicted xy of s_1..s_K (B, M, K, 2) and final states (B, M, obs) for given sequences
     (XLA back end; the reference the fused kernel is tested against)."""
     fd = dynamics_fold(dyn_cfg, dyn_state)
-    xy, final, _ = _rollout_xla(mpc_cfg, dyn_cfg, fd, jnp.asarray(obs, jnp.float32),
-                                jnp.asarray(actions, jnp.float32))
-    return xy, final
+    return _rollout_xla(mpc_cfg, dyn_cfg, fd, jnp.asarray(obs, jnp.float32), jnp.asarray(actions, jnp.float32))
 
 
 # --------------------------------------------------------------------------------------------
@@ -482,9 +440,6 @@ def _rollout_pallas(mpc_cfg: MPCConfig, dyn_cfg: DynamicsConfig, fd: FoldedDynam
     slope = float(dyn_cfg.negative_slope)
     gamma = float(mpc_cfg.discount)
     tol2 = float(mpc_cfg.goal_tolerance) ** 2
-    upright_w, upright_min = float(mpc_cfg.upright_weight), float(mpc_cfg.upright_min)
-    if upright_w > 0 and mpc_cfg.quat_index + 4 > obs.shape[-1]:
-        raise ValueError(f"quat_index {mpc_cfg.quat_index} + 4 exceeds the state size {obs.shape[-1]}")
     f32, bf = jnp.float32, jnp.bfloat16
     draw = acts_k.dtype == jnp.uint32
     if draw:
@@ -628,15 +583,6 @@ def _rollout_pallas(mpc_cfg: MPCConfig, dyn_cfg: DynamicsConfig, fd: FoldedDynam
         def dist2(s):
             return jnp.sum(jnp.where(xy_lane, jnp.square(s - gg), 0.0), axis=1)
 
-        def tilt_cost(s):  # upright_weight * max(0, upright_min - up(s)), as `upright_cost`
-            sq = jnp.square(s)
-            qi = mpc_cfg.quat_index
-            plus = (lane == qi) | (lane == qi + 3)
-            minus = (lane == qi + 1) | (lane == qi + 2)
-            num = jnp.sum(jnp.where(plus, sq, 0.0) - jnp.where(minus, sq, 0.0), axis=1)
-            den = jnp.maximum(jnp.sum(jnp.where(plus | minus, sq, 0.0), axis=1), 1e-6)
-            return upright_w * jnp.maximum(upright_min - num / den, 0.0)
-
         def step(t, carry):
             s, cost, disc = carry
             a = actions(t)
@@ -647,10 +593,7 @@ def _rollout_pallas(mpc_cfg: MPCConfig, dyn_cfg: DynamicsConfig, fd: FoldedDynam
                 s = s + ds + W(b3_ref, 0, slice(None), slice(None))
             else:
                 s = s + member_delta(0, sb, a) + b3_ref[...]
-            c = (dist2(s) > tol2).astype(f32)
-            if upright_w > 0:
-                c = c + tilt_cost(s)
-            cost = cost + disc * c
+            cost = cost + disc * (dist2(s) > tol2).astype(f32)
             return s, cost, disc * gamma
 
         s, cost, _ = jax.lax.fori_loop(0, K, step, (s, jnp.zeros((BM,), f32), jnp.float32(1.0)))
@@ -776,10 +719,10 @@ def _values(value_fn, final_states, goal, precision=None):
 def _xla_sequence_costs(mpc_cfg, dyn_cfg, dyn_state, obs, goal, actions, value_fn, value_net):
     """The XLA back end of `sequence_costs`: rollout, terminal values, eq. 2 cost (B, M)."""
     fd = dynamics_fold(dyn_cfg, dyn_state)
-    xy, final, up = _rollout_xla(mpc_cfg, dyn_cfg, fd, obs, actions)
+    xy, final = _rollout_xla(mpc_cfg, dyn_cfg, fd, obs, actions)
     v = (_values(_value_callable(value_fn, value_net), final, goal, mpc_cfg.value_precision)
          if mpc_cfg.use_value else None)
-    return mpc_cost(mpc_cfg, xy, goal, v, up)
+    return mpc_cost(mpc_cfg, xy, goal, v)
 
 
 def sequence_costs(mpc_cfg: MPCConfig, dyn_cfg: DynamicsConfig, dyn_state: DynamicsState, obs, goal, actions,
@@ -898,12 +841,11 @@ def shooting_actions(mpc_cfg: MPCConfig, step_fn: Callable, key, obs, goal, acti
 
     def body(s, a):
         s = step_fn(s, a.reshape(B * M, -1))
-        return s, (s[:, :2].reshape(B, M, 2), upright(mpc_cfg, s).reshape(B, M))
+        return s, s[:, :2].reshape(B, M, 2)
 
-    final, (xy, up) = jax.lax.scan(body, s0, jnp.moveaxis(actions, 2, 0))
+    final, xy = jax.lax.scan(body, s0, jnp.moveaxis(actions, 2, 0))
     final = final.reshape(B, M, -1)
     v = _values(value_fn, final, goal, mpc_cfg.value_precision) if mpc_cfg.use_value else None
-    up = jnp.moveaxis(up, 0, 2) if mpc_cfg.upright_weight > 0 else None
-    cost = mpc_cost(mpc_cfg, jnp.moveaxis(xy, 0, 2), goal, v, up)
+    cost = mpc_cost(mpc_cfg, jnp.moveaxis(xy, 0, 2), goal, v)
     idx = jnp.argmin(cost, axis=-1)
     return jnp.take_along_axis(actions[:, :, 0, :], idx[:, None, None], axis=1)[:, 0, :]

@@ -849,8 +849,7 @@ def mpc_config(config: Config):
     return MPCConfig(num_samples=config.mpc_samples, horizon=config.mpc_horizon,
                      discount=config.mpc_discount, goal_tolerance=config.goal_tolerance,
                      use_value=config.uses_value_in_mpc, compute_dtype=config.mpc_dtype,
-                     backend=config.mpc_backend, upright_weight=config.mpc_upright_weight,
-                     upright_min=config.mpc_upright_min)
+                     backend=config.mpc_backend)
 
 
 def _mpc_actions(config: Config, dyn, key, obs, goals, value_fn, value_net=None):
