@@ -176,6 +176,21 @@ def _is_ant(cfg: Config) -> bool:
 # ------------------------------------------------------------------------------------------------
 # Training driver (host side)
 # ------------------------------------------------------------------------------------------------
+def stuck_chain_warning(metrics: dict, cfg: Config, who: str = "") -> Optional[str]:
+    """The warning for a chain that can no longer reach the start, or None: every row of the option
+    table is in use (``options/capacity_hit``: a new option was needed and there was no room) and
+    no option's initiation region holds the task start (``options/start_covered``). The original
+    algorithm has no cap and would add an option; here no new link can be made, so success from
+    the start stays near 0 unless a refit widens an existing region again (measured on the ant
+    medium maze: ``experiments/results/paper/README.md``, "Against the falls")."""
+    if metrics.get("options/capacity_hit", 0) < 0.5 or metrics.get("options/start_covered", 1) > 0.5:
+        return None
+    return (f"warning: {who}the option table is full (max_options={cfg.max_options}) and no "
+            f"option's initiation region holds the task start any more; the chain cannot add the "
+            f"link it needs, so success from the start will likely stay near 0. Restart with more "
+            f"rows, e.g. --set max_options={cfg.max_options + 8}.")
+
+
 def _check_finite(metrics: dict) -> Optional[str]:
     import math
     bad = [k.split("/", 1)[1] for k, v in metrics.items()
@@ -279,6 +294,7 @@ def train(cfg: Optional[Config] = None, run_dir: Optional[str] = None, resume: b
     wall0 = _previous_wall(run_dir)
     last_eval = float("nan")
     saved_iter = start_iter
+    warned_stuck = False
     try:
         while not _schedule_done(cfg, state):
             if max_iterations is not None and int(state.counters.iteration) - start_iter >= max_iterations:
@@ -319,6 +335,11 @@ def train(cfg: Optional[Config] = None, run_dir: Optional[str] = None, resume: b
                       f"{int(m.get('options/num_options', 1))} "
                       f"steps/s {row['time/env_steps_per_s']:.0f}", flush=True)
             logger.log(row)
+            if not warned_stuck:
+                msg = stuck_chain_warning(m, cfg, f"iteration {it}: ")
+                if msg:
+                    warned_stuck = True
+                    (pbar.write if pbar is not None else print)(msg, file=sys.stderr)
             if pbar is not None:
                 pbar.update(int(m["counters/env_steps"]) - pbar.n)
                 inband = {"inband_success": _inband_rate(m)} if "inband/success_rate" in m else {}

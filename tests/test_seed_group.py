@@ -430,6 +430,15 @@ def test_warp_group_seed_directory_evaluates(tmp_path):
     assert 0.0 <= summary["eval/success_rate"] <= 1.0
 
 
+def test_a_stuck_chain_warning_names_its_seed_once(tmp_path, monkeypatch, capsys):
+    import dscpp_jax.cli as cli
+    monkeypatch.setattr(cli, "stuck_chain_warning", lambda m, cfg, who="": (
+        f"warning: {who}stuck" if cfg.seed == 1 else None))
+    assert main(TRAIN + ["--seeds", "0-1", "--run-dir", str(tmp_path / "g")]) == 0
+    err = capsys.readouterr().err
+    assert err.count("stuck") == 1 and "seed 1, iteration 1: stuck" in err
+
+
 def test_a_seed_finishing_early_waits_for_the_next_evaluation(tmp_path, monkeypatch):
     """A seed that reaches its budget before the others is frozen; its last row waits for the
     group's next evaluation (here the final one) instead of costing an evaluation of its own, and

@@ -253,6 +253,23 @@ def test_nan_in_learning_stops_with_a_message(tmp_path):
     assert ck.latest_step(str(tmp_path / "run")) == 0
 
 
+def test_a_full_table_without_the_start_warns_once(tmp_path, capsys):
+    """A full option table whose regions no longer hold the start cannot grow the link it needs:
+    the run says so once, with the fix, and goes on."""
+    from dscpp_jax.cli import stuck_chain_warning, train
+    cfg = tiny("mf_dscpp")      # compiled above
+    assert stuck_chain_warning({"options/capacity_hit": 1.0, "options/start_covered": 1.0}, cfg) is None
+    assert stuck_chain_warning({"options/capacity_hit": 0.0, "options/start_covered": 0.0}, cfg) is None
+    assert stuck_chain_warning({"train/episode_success": 0.0}, cfg) is None   # flat algorithms
+    msg = stuck_chain_warning({"options/capacity_hit": 1.0, "options/start_covered": 0.0}, cfg)
+    assert "max_options=4" in msg and "--set max_options=12" in msg
+    s = T.init(jax.random.PRNGKey(0), cfg)
+    full = s.replace(chain=s.chain.replace(capacity_hit=jnp.asarray(True)))   # nothing covers the start
+    train(cfg, str(tmp_path / "run"), progress=False, initial_state=full, max_iterations=2)
+    err = capsys.readouterr().err
+    assert err.count("the option table is full") == 1 and "iteration 1:" in err
+
+
 @pytest.mark.parametrize("algo,subgoal", [("td3_her", "robust"), ("mb_flat", "robust"),
                                           ("mb_flat_value", "robust"), ("dsc", "robust"),
                                           ("mb_dscpp", "dp")])
