@@ -87,6 +87,10 @@ class Config:
                                        # examples (longer links; 0: anywhere on the frontier)
     frontier_candidates: int = 512
     frontier_min_open: int = 4
+    frontier_metric: str = "euclidean"  # "euclidean": within frontier_radius in a straight line
+                                       # (through walls); "maze": and at most
+                                       # ceil(frontier_radius / cell size) cells apart through free
+                                       # cells (round the walls)
     eval_prefer_pessimistic: bool = True  # evaluation's policy over options tries pessimistic
                                        # regions first (False: the paper's walk, as in training)
 
@@ -357,6 +361,8 @@ class Config:
         need(0 <= self.frontier_inner_radius < self.frontier_radius,
              f"frontier_inner_radius={self.frontier_inner_radius} and frontier_radius="
              f"{self.frontier_radius}: need 0 <= frontier_inner_radius < frontier_radius")
+        need(self.frontier_metric in ("euclidean", "maze"),
+             f"frontier_metric={self.frontier_metric!r} must be 'euclidean' or 'maze'")
         need(self.frontier_candidates >= 1 and self.frontier_min_open >= 1,
              f"frontier_candidates={self.frontier_candidates} and frontier_min_open="
              f"{self.frontier_min_open} must be >= 1")
