@@ -29,7 +29,8 @@ MODEL_BASED_ALGOS = ("mb_dscpp", "mb_flat", "mb_flat_value")
 # Runs written since also record every default beside their config ("config_defaults").
 RETIRED_FIELDS: dict[str, Any] = dict(
     td3_upright_weight=0.0, td3_upright_min=0.5, td3_absorb_fallen=False,
-    mpc_upright_weight=0.0, mpc_upright_min=0.5, gestation_patience=0)
+    mpc_upright_weight=0.0, mpc_upright_min=0.5, gestation_patience=0,
+    frontier_metric="euclidean")
 # Fields only the host driver reads (the TrainState carries `Config.device_view()`).
 HOST_ONLY_DEFAULTS = dict(seed=0, total_env_steps=1, total_episodes=0, eval_every=0,
                           log_every=1, checkpoint_every=0, keep_checkpoints=1, preset="paper")
@@ -87,10 +88,6 @@ class Config:
                                        # examples (longer links; 0: anywhere on the frontier)
     frontier_candidates: int = 512
     frontier_min_open: int = 4
-    frontier_metric: str = "euclidean"  # "euclidean": within frontier_radius in a straight line
-                                       # (through walls); "maze": and at most
-                                       # ceil(frontier_radius / cell size) cells apart through free
-                                       # cells (round the walls)
     eval_prefer_pessimistic: bool = True  # evaluation's policy over options tries pessimistic
                                        # regions first (False: the paper's walk, as in training)
 
@@ -361,8 +358,6 @@ class Config:
         need(0 <= self.frontier_inner_radius < self.frontier_radius,
              f"frontier_inner_radius={self.frontier_inner_radius} and frontier_radius="
              f"{self.frontier_radius}: need 0 <= frontier_inner_radius < frontier_radius")
-        need(self.frontier_metric in ("euclidean", "maze"),
-             f"frontier_metric={self.frontier_metric!r} must be 'euclidean' or 'maze'")
         need(self.frontier_candidates >= 1 and self.frontier_min_open >= 1,
              f"frontier_candidates={self.frontier_candidates} and frontier_min_open="
              f"{self.frontier_min_open} must be >= 1")

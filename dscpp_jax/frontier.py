@@ -24,84 +24,19 @@ frontier of row ``k`` when no mature option's initiation set (optimistic OR pess
 and it lies within ``radius`` of one of row ``k``'s positive states inside ``k``'s pessimistic region
 (the states its children draw subgoals from). Pure and shape-stable: candidates (M, 2) in, (K, M)
 out; vmap over seeds.
-
-"Within ``radius``" is the straight-line distance, which reaches through walls: a candidate one
-wall cell away from an option's examples counts as its frontier although the ant must walk round
-the wall to get there. Given a :class:`MazeReach` (``Config.frontier_metric="maze"``, built from the
-env's map with :func:`maze_reach`), a candidate is near a positive state only where their maze
-cells are also at most ``ceil(radius / cell_size)`` moves apart through free cells.
 """
 from __future__ import annotations
 
-import functools
-import math
-from collections import deque
-from typing import NamedTuple, Optional, Tuple
-
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from dscpp_jax.options import GESTATION, GOAL, MATURE, Chain, _classify_all
 
 
-class MazeReach(NamedTuple):
-    """Which cells of a maze's grid lie within a few moves of each other through free cells.
-
-    near: (R * C, R * C) bool over the map's cells in row-major order; False for wall cells.
-    cell_size, origin (row, col of the cell centred at (0, 0)), shape (R, C): as the map's
-    ``envs.maze_layout.MazeLayout``."""
-    near: np.ndarray
-    cell_size: float
-    origin: Tuple[int, int]
-    shape: Tuple[int, int]
-
-    def cell_index(self, xy) -> jax.Array:
-        """(..., 2) positions -> (...,) int32 row-major cell index (clipped into the map, whose
-        border is wall)."""
-        xy = jnp.asarray(xy, jnp.float32)
-        R, C = self.shape
-        col = jnp.floor(xy[..., 0] / self.cell_size + 0.5).astype(jnp.int32) + self.origin[1]
-        row = jnp.floor(xy[..., 1] / self.cell_size + 0.5).astype(jnp.int32) + self.origin[0]
-        return jnp.clip(row, 0, R - 1) * C + jnp.clip(col, 0, C - 1)
-
-
-@functools.lru_cache(maxsize=32)
-def maze_reach(layout, radius: float) -> MazeReach:
-    """The :class:`MazeReach` of ``layout`` (an ``envs.maze_layout.MazeLayout``) for ``radius``:
-    cells at most ``ceil(radius / cell_size)`` moves apart (4-neighbour steps through free cells,
-    breadth-first search)."""
-    wall = np.asarray(layout.wall_grid(), bool)
-    R, C = wall.shape
-    hops = max(1, int(math.ceil(float(radius) / float(layout.cell_size) - 1e-9)))
-    near = np.zeros((R * C, R * C), bool)
-    for i0 in range(R):
-        for j0 in range(C):
-            if wall[i0, j0]:
-                continue
-            dist = {(i0, j0): 0}
-            todo = deque([(i0, j0)])
-            while todo:
-                i, j = todo.popleft()
-                if dist[(i, j)] == hops:
-                    continue
-                for di, dj in ((1, 0), (-1, 0), (0, 1), (0, -1)):
-                    n = (i + di, j + dj)
-                    if 0 <= n[0] < R and 0 <= n[1] < C and not wall[n] and n not in dist:
-                        dist[n] = dist[(i, j)] + 1
-                        todo.append(n)
-            for (i, j) in dist:
-                near[i0 * C + j0, i * C + j] = True
-    return MazeReach(near, float(layout.cell_size), tuple(layout.origin), (R, C))
-
-
-def frontier_probe(chain: Chain, cand_xy, radius: float, inner: float = 0.0,
-                   reach: Optional[MazeReach] = None) -> jax.Array:
+def frontier_probe(chain: Chain, cand_xy, radius: float, inner: float = 0.0) -> jax.Array:
     """(K, M) bool: candidate m (``cand_xy`` (M, 2)) is uncovered free space within ``radius`` of
     mature row k's positive states inside k's pessimistic region, and no nearer than ``inner`` to
-    any of them (False for other rows). With ``reach``, only positive states whose maze cell is
-    within reach of the candidate's count (distances measured round the walls, not through
-    them)."""
+    any of them (False for other rows)."""
     cand = jnp.asarray(cand_xy, jnp.float32)
     if cand.ndim != 2 or cand.shape[-1] != 2:
         raise ValueError(f"frontier_probe: cand_xy must have shape (M, 2), got {cand.shape}")
@@ -113,18 +48,11 @@ def frontier_probe(chain: Chain, cand_xy, radius: float, inner: float = 0.0,
     uncovered = ~jnp.any(ini & mature[None, :], axis=1)                     # (M,)
     K, P, L = chain.pos_xy.shape[:3]
     r2, i2 = float(radius) ** 2, float(inner) ** 2
-    if reach is not None:
-        near_cells = jnp.asarray(reach.near)
-        cand_cell = reach.cell_index(cand)                                  # (M,)
 
     def row_near(args):
         xy, ok = args                                                       # (P, L, 2), (P, L)
-        xy = xy.reshape(P * L, 2)
-        d2 = jnp.sum((cand[:, None, :] - xy[None]) ** 2, axis=-1)          # (M, P*L)
-        ok = jnp.broadcast_to(ok.reshape(P * L)[None, :], d2.shape)
-        if reach is not None:
-            ok = ok & near_cells[cand_cell[:, None], reach.cell_index(xy)[None, :]]
-        d2 = jnp.min(jnp.where(ok, d2, jnp.inf), axis=1)                    # (M,)
+        d2 = jnp.sum((cand[:, None, :] - xy.reshape(P * L, 2)[None]) ** 2, axis=-1)
+        d2 = jnp.min(jnp.where(ok.reshape(P * L)[None, :], d2, jnp.inf), axis=1)   # (M,)
         return (d2 <= r2) & (d2 >= i2)
 
     near = jax.lax.map(row_near, (chain.pos_xy, chain.pess_ok))            # (K, M)

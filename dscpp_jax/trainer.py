@@ -691,10 +691,9 @@ def _learn(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[str
             cand = _frontier_candidates(config, env, jax.random.fold_in(key, FRONTIER_KEY_SALT))
             chain = mature_options(chain)
             # growth leaves mature rows as they are, so this holds for the grown chain too
-            is_open = frontier.open_rows(
-                frontier.frontier_probe(chain, cand, config.frontier_radius,
-                                        reach=_frontier_reach(config, env)),
-                config.frontier_min_open)
+            is_open = frontier.open_rows(frontier.frontier_probe(chain, cand,
+                                                                 config.frontier_radius),
+                                         config.frontier_min_open)
             g0, p0 = frontier.gestation_row(chain), chain.parent
             chain = _grow_chain(config, chain, jnp.asarray(env.start, jnp.float32), is_open)
             g = frontier.gestation_row(chain)
@@ -971,16 +970,7 @@ def _frontier_pool(config: Config, env, chain, key):
     from dscpp_jax import frontier
     cand = _frontier_candidates(config, env, key)
     return cand, frontier.start_pool(chain, frontier.frontier_probe(
-        chain, cand, config.frontier_radius, config.frontier_inner_radius,
-        _frontier_reach(config, env)))
-
-
-def _frontier_reach(config: Config, env):
-    """The maze's cell reach for `frontier_metric="maze"`, else None (straight-line distances)."""
-    if config.frontier_metric != "maze":
-        return None
-    from dscpp_jax import frontier
-    return frontier.maze_reach(env.layout, float(config.frontier_radius))
+        chain, cand, config.frontier_radius, config.frontier_inner_radius))
 
 
 def _dp_value_table(config: Config, chain, td3):

@@ -69,72 +69,6 @@ def test_probe_matches_a_numpy_oracle(two_links):
     np.testing.assert_array_equal(F.open_rows(jnp.asarray(got), 1), want.any(axis=1))
 
 
-def _bfs_hops(wall, a, b):
-    """Plain breadth-first search: 4-neighbour moves from cell a to cell b through free cells
-    (None when unreachable)."""
-    from collections import deque
-    seen, todo = {a: 0}, deque([a])
-    while todo:
-        c = todo.popleft()
-        if c == b:
-            return seen[c]
-        for d in ((1, 0), (-1, 0), (0, 1), (0, -1)):
-            n = (c[0] + d[0], c[1] + d[1])
-            if 0 <= n[0] < wall.shape[0] and 0 <= n[1] < wall.shape[1] and not wall[n] \
-                    and n not in seen:
-                seen[n] = seen[c] + 1
-                todo.append(n)
-    return None
-
-
-def test_maze_reach_counts_moves_round_the_walls():
-    from envs.maze_layout import BUILTIN_MAPS, parse_map
-    m, cs, o = BUILTIN_MAPS["medium"]
-    lay = parse_map(m, cs, name="medium", origin=o)
-    wall = lay.wall_grid()
-    R, C = wall.shape
-    for radius, hops in ((4.0, 1), (6.0, 2), (9.0, 3)):
-        reach = F.maze_reach(lay, radius)
-        for a in range(R * C):
-            for b in range(R * C):
-                ca, cb = divmod(a, C), divmod(b, C)
-                h = None if wall[ca] or wall[cb] else _bfs_hops(wall, ca, cb)
-                assert reach.near[a, b] == (h is not None and h <= hops), (radius, ca, cb, h)
-    # positions map to their cells as the layout's own xy_to_cell does
-    reach = F.maze_reach(lay, 6.0)
-    xy = np.random.default_rng(0).uniform(-6, 30, (200, 2)).astype(np.float32)
-    rc = np.clip(np.asarray(lay.xy_to_cell(xy)), 0, [R - 1, C - 1])
-    np.testing.assert_array_equal(np.asarray(reach.cell_index(xy)), rc[:, 0] * C + rc[:, 1])
-
-
-def test_the_maze_metric_keeps_the_frontier_out_of_the_next_corridor():
-    # U-maze (cells of 4): examples at the end of the bottom corridor, candidates straight across
-    # the middle wall (4.5 away, 3 cells round it) and along the corridor (4.5 away, one cell on)
-    from envs.maze_layout import BUILTIN_MAPS, parse_map
-    m, cs, o = BUILTIN_MAPS["u_maze"]
-    lay = parse_map(m, cs, name="u_maze", origin=o)
-    assert lay.wall_grid()[2, 1] and not lay.wall_grid()[1, 1] and not lay.wall_grid()[3, 1]
-    ch = O.chain_init(CFG, np.asarray(lay.goal_xy, np.float32))
-    ch = ch.replace(status=jnp.array([A, M, G, FR, FR]), parent=jnp.array([-1, -1, 1, -1, -1]),
-                    num_options=jnp.asarray(3))
-    rng = np.random.default_rng(0)
-    B, T_ = 8, CFG.buffer_len
-    goal = np.asarray(lay.goal_xy, np.float32)                      # (0, 8): cell (3, 1)
-    start = (goal + rng.uniform(-0.3, 0.3, (B, 2))).astype(np.float32)
-    traj = (goal + [0.0, -1.5] + rng.uniform(-0.3, 0.3, (B, T_, 2))).astype(np.float32)
-    ev = np.ones((B,), bool)
-    ch = refit(record(ch, np.full((B,), 1, np.int32), ev, start, traj, np.ones((B, T_), bool), ev))
-    low = np.asarray(ch.pos_xy[1]).reshape(-1, 2)[np.asarray(ch.pess_ok[1]).reshape(-1)][:, 1].min()
-    across = np.array([[0.0, low - 4.5]], np.float32)               # behind the wall, cell (1, 1)
-    along = np.array([[4.5, low]], np.float32)                      # cell (3, 2)
-    cand = np.concatenate([across, along])
-    assert not np.asarray(jax.vmap(lambda p: O.start_covered(ch, p))(jnp.asarray(cand))).any()
-    straight = np.asarray(F.frontier_probe(ch, cand, 6.0))[1]
-    maze = np.asarray(F.frontier_probe(ch, cand, 6.0, reach=F.maze_reach(lay, 6.0)))[1]
-    np.testing.assert_array_equal(straight, [True, True])
-    np.testing.assert_array_equal(maze, [False, True])
-
-
 def test_probe_refuses_bad_input(two_links):
     with pytest.raises(ValueError, match="shape"):
         F.frontier_probe(two_links, np.zeros((3,), np.float32), 1.0)
@@ -207,7 +141,7 @@ def test_diverse_starts_take_the_frontier_share():
 def test_training_with_the_frontier_runs_and_groups_equal_separate_runs():
     # both uses on, under a seed vmap and alone (the logic itself: the tests above)
     cfg = tiny("mf_dscpp", frontier_start_prob=0.5, frontier_parent=True, frontier_candidates=64,
-               frontier_radius=4.0, frontier_min_open=2, frontier_metric="maze")
+               frontier_radius=4.0, frontier_min_open=2)
     keys = jax.random.split(jax.random.PRNGKey(5), 2)
     states = jax.vmap(lambda k: T.init(k, cfg))(keys)
     vstep = jax.jit(T.train_step_group_impl)
@@ -230,7 +164,6 @@ def test_training_with_the_frontier_runs_and_groups_equal_separate_runs():
     (dict(frontier_radius=0.0), "frontier_radius"),
     (dict(frontier_inner_radius=5.0, frontier_radius=5.0), "frontier_inner_radius"),
     (dict(frontier_candidates=0), "frontier_candidates"),
-    (dict(frontier_metric="geodesic"), "frontier_metric"),
 ])
 def test_bad_frontier_settings_are_refused(kw, match):
     with pytest.raises(ValueError, match=match):
