@@ -191,6 +191,38 @@ def stuck_chain_warning(metrics: dict, cfg: Config, who: str = "") -> Optional[s
             f"rows, e.g. --set max_options={cfg.max_options + 8}.")
 
 
+STALLED_LINK_EXECUTIONS = 1000   # failed executions, none successful, before a link counts as stalled
+
+
+def stalled_link_warning(metrics: dict, cfg: Config, who: str = "") -> Optional[str]:
+    """The warning for a chain link in gestation that has failed ``STALLED_LINK_EXECUTIONS`` or
+    more executions without one success (``options/gestation_executions``,
+    ``options/gestation_successes``), or None. Until it matures no new link is made, so the chain
+    has stopped growing. Seen on the ant's medium maze, where such a link targeted an option in a
+    dead end while that option's frontier stayed open (``experiments/results/paper/README.md``)."""
+    n = metrics.get("options/gestation_executions", 0)
+    if n < STALLED_LINK_EXECUTIONS or metrics.get("options/gestation_successes", 1) > 0:
+        return None
+    parent = int(metrics.get("options/gestation_parent", -1))
+    return (f"warning: {who}the option in gestation (it targets option {parent}) has failed "
+            f"{int(n)} executions without one success, so the chain has stopped growing there. "
+            f"Its target's region is likely out of reach from where its executions start; look at "
+            f"the options' regions (`plot RUN_DIR --regions-only`). docs/training.md, "
+            f"\"A stalled link\", says what to try.")
+
+
+def chain_warnings(metrics: dict, cfg: Config, who: str = "") -> list:
+    """(kind, message) for each chain warning that holds in this iteration's metrics: the full
+    table without the start (``stuck_chain_warning``) and the stalled link
+    (``stalled_link_warning``). Callers print each kind once per run (per seed in a group)."""
+    out = []
+    for kind, fn in (("stuck", stuck_chain_warning), ("stalled", stalled_link_warning)):
+        msg = fn(metrics, cfg, who)
+        if msg:
+            out.append((kind, msg))
+    return out
+
+
 def _check_finite(metrics: dict) -> Optional[str]:
     import math
     bad = [k.split("/", 1)[1] for k, v in metrics.items()
@@ -294,7 +326,7 @@ def train(cfg: Optional[Config] = None, run_dir: Optional[str] = None, resume: b
     wall0 = _previous_wall(run_dir)
     last_eval = float("nan")
     saved_iter = start_iter
-    warned_stuck = False
+    warned = set()   # chain warnings already printed (chain_warnings kinds)
     try:
         while not _schedule_done(cfg, state):
             if max_iterations is not None and int(state.counters.iteration) - start_iter >= max_iterations:
@@ -335,10 +367,9 @@ def train(cfg: Optional[Config] = None, run_dir: Optional[str] = None, resume: b
                       f"{int(m.get('options/num_options', 1))} "
                       f"steps/s {row['time/env_steps_per_s']:.0f}", flush=True)
             logger.log(row)
-            if not warned_stuck:
-                msg = stuck_chain_warning(m, cfg, f"iteration {it}: ")
-                if msg:
-                    warned_stuck = True
+            for kind, msg in chain_warnings(m, cfg, f"iteration {it}: "):
+                if kind not in warned:
+                    warned.add(kind)
                     (pbar.write if pbar is not None else print)(msg, file=sys.stderr)
             if pbar is not None:
                 pbar.update(int(m["counters/env_steps"]) - pbar.n)

@@ -144,7 +144,7 @@ def train_group(cfg: Config, seeds: Sequence[int], group_dir: Optional[str] = No
     from dscpp_jax import seed_group as SG
     from dscpp_jax import trainer as T
     from dscpp_jax.cli import (INBAND_LINE_EVERY, TrainingDiverged, _check_finite, _is_ant,
-                               _main_thread, _previous_wall, stuck_chain_warning)
+                               _main_thread, _previous_wall, chain_warnings)
     from dscpp_jax.run_logging import RunLogger, read_config, write_config
 
     seeds = tuple(int(s) for s in seeds)
@@ -217,7 +217,7 @@ def train_group(cfg: Config, seeds: Sequence[int], group_dir: Optional[str] = No
         fn.lower(placed, all_active).compile()
         prewarm.join()
     last_eval = np.full((n,), np.nan)
-    warned_stuck = np.zeros((n,), bool)   # one stuck-chain warning per seed
+    warned = [set() for _ in range(n)]   # chain warnings printed, per seed (each kind once)
     inband = np.full((n,), np.nan)     # in-band success per seed (NaN: none finished yet)
     options = np.full((n,), np.nan)
     saved_iter = start_iter
@@ -284,11 +284,11 @@ def train_group(cfg: Config, seeds: Sequence[int], group_dir: Optional[str] = No
                     last_eval[i] = ev[i]["eval/success_rate"]
                 if lead:
                     loggers[i].log(row)
-                    msg = None if warned_stuck[i] else stuck_chain_warning(
-                        row, cfgs[i], f"seed {seeds[i]}, iteration {int(its[i])}: ")
-                    if msg:
-                        warned_stuck[i] = True
-                        (pbar.write if pbar is not None else print)(msg, file=sys.stderr)
+                    for kind, msg in chain_warnings(
+                            row, cfgs[i], f"seed {seeds[i]}, iteration {int(its[i])}: "):
+                        if kind not in warned[i]:
+                            warned[i].add(kind)
+                            (pbar.write if pbar is not None else print)(msg, file=sys.stderr)
             if "inband/success_rate" in m:
                 seen = active & (m["inband/window"] > 0)
                 inband = np.where(seen, m["inband/success_rate"], np.where(active, np.nan, inband))

@@ -270,6 +270,30 @@ def test_a_full_table_without_the_start_warns_once(tmp_path, capsys):
     assert err.count("the option table is full") == 1 and "iteration 1:" in err
 
 
+def test_a_stalled_link_warns_once(tmp_path, capsys):
+    """A link in gestation that has failed 1,000 executions without a success stops the chain:
+    the run says so once, naming the option it targets, and goes on."""
+    from dscpp_jax.cli import stalled_link_warning, train
+    from dscpp_jax.options import GESTATION
+    cfg = tiny("mf_dscpp")      # compiled above
+    base = {"options/gestation_executions": 1000.0, "options/gestation_successes": 0.0,
+            "options/gestation_parent": 3.0}
+    assert "targets option 3" in stalled_link_warning(base, cfg)
+    assert "1000 executions" in stalled_link_warning(base, cfg)
+    assert stalled_link_warning({**base, "options/gestation_successes": 1.0}, cfg) is None
+    assert stalled_link_warning({**base, "options/gestation_executions": 999.0}, cfg) is None
+    assert stalled_link_warning({"train/episode_success": 0.0}, cfg) is None   # flat algorithms
+    s = T.init(jax.random.PRNGKey(0), cfg)
+    ch = s.chain
+    stalled = ch.replace(status=ch.status.at[2].set(GESTATION), parent=ch.parent.at[2].set(1),
+                         executions=ch.executions.at[2].set(1500))
+    train(cfg, str(tmp_path / "run"), progress=False, initial_state=s.replace(chain=stalled),
+          max_iterations=2)
+    err = capsys.readouterr().err
+    assert err.count("has failed 1500 executions") == 1 and "targets option 1" in err
+    assert "iteration 1:" in err
+
+
 @pytest.mark.parametrize("algo,subgoal", [("td3_her", "robust"), ("mb_flat", "robust"),
                                           ("mb_flat_value", "robust"), ("dsc", "robust"),
                                           ("mb_dscpp", "dp")])
