@@ -191,7 +191,8 @@ def stuck_chain_warning(metrics: dict, cfg: Config, who: str = "") -> Optional[s
             f"rows, e.g. --set max_options={cfg.max_options + 8}.")
 
 
-STALLED_LINK_EXECUTIONS = 1000   # failed executions, none successful, before a link counts as stalled
+from dscpp_jax.diagnose import STALLED_LINK_EXECUTIONS  # noqa: E402  (failed executions, none
+# successful, before the link in gestation counts as stalled)
 
 
 def stalled_link_warning(metrics: dict, cfg: Config, who: str = "") -> Optional[str]:
@@ -623,6 +624,13 @@ def cmd_plot(args) -> int:
     return 0
 
 
+def cmd_diagnose(args) -> int:
+    from dscpp_jax import diagnose
+    rows = diagnose.diagnose(args.runs)
+    print(diagnose.format_table(rows))
+    return 0
+
+
 def cmd_train(args) -> int:
     if getattr(args, "seeds", None) is not None or _resumes_group(args) or _distributed(args):
         return cmd_train_group(args)
@@ -889,6 +897,13 @@ def build_parser() -> argparse.ArgumentParser:
                     help="curves and the options' regions, but no evaluation episodes for the "
                          "trajectory plot (seconds instead of minutes on the ant)")
     pl.set_defaults(func=cmd_plot)
+
+    dg = sub.add_parser("diagnose", help="why each run's skill chain fails from the start (falls, "
+                        "weak links, a full table, a stalled link), from metrics.csv and eval.json")
+    dg.add_argument("runs", nargs="+",
+                    help="run directories of finished runs; a seed group's directory stands for "
+                         "its seeds")
+    dg.set_defaults(func=cmd_diagnose)
     return p
 
 

@@ -1,0 +1,133 @@
+"""Why a run's skill chain fails from the start: a reading of its ``metrics.csv`` and ``eval.json``.
+
+The skill chain can fail from the task start in a few recurring ways, each visible in what a run
+already writes (``docs/training.md``; the medium maze in ``experiments/results/paper/README.md``):
+
+- ``falls``: the chain reaches the start, and most failed evaluation episodes end with the ant on
+  its back (``eval/flipped_failures``);
+- ``weak link``: the chain reaches the start, but one of its options fails most of its
+  evaluation executions (``eval/option_success/K`` below ``WEAK_LINK``), often because its
+  parent's region lies on both sides of a junction;
+- ``table full``: no option's region holds the start and every row of the option table is in use
+  (``options/capacity_hit``), so no link can be added;
+- ``stalled link``: no option's region holds the start and the link in gestation has failed at
+  least ``STALLED_LINK_EXECUTIONS`` executions without a success;
+- ``not covered``: no option's region holds the start yet, for none of those reasons (a chain
+  still growing when the episodes ran out).
+
+Only the lean files are read (no checkpoint), so it works on results copied off a GPU host.
+``python -m dscpp_jax.cli diagnose RUN_OR_GROUP_DIR ...`` prints one row per seed.
+"""
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+from typing import Optional, Sequence
+
+SOLVED = 0.8              # success from the start at or above this: nothing to diagnose
+WEAK_LINK = 0.2           # an option that succeeds in fewer of its evaluation executions is weak
+STALLED_LINK_EXECUTIONS = 1000
+FALLS_SHARE = 0.5         # falls: at least this share of the failed evaluation episodes
+
+COLUMNS = ("run", "success", "start covered", "options", "falls", "weak links", "verdict")
+
+
+def _last_row(path: str) -> dict:
+    last = None
+    with open(path, newline="") as f:
+        for row in csv.DictReader(f):
+            last = row
+    if last is None:
+        raise ValueError(f"{path} has no rows: the run has not finished an iteration")
+    return last
+
+
+def _num(d: dict, key: str, default: float = math.nan) -> float:
+    try:
+        v = float(d.get(key, default))
+    except (TypeError, ValueError):
+        return default
+    return v
+
+
+def diagnose_run(run_dir: str) -> dict:
+    """One run's reading: success, coverage, falls, weak links and the verdict (see the module
+    docstring). Raises ValueError naming what is missing when the directory holds no
+    ``metrics.csv`` or no ``eval.json``."""
+    paths = {n: os.path.join(run_dir, n) for n in ("metrics.csv", "eval.json", "config.json")}
+    for n in ("metrics.csv", "eval.json"):
+        if not os.path.isfile(paths[n]):
+            raise ValueError(f"{run_dir}: no {n}; diagnose reads a finished run's metrics.csv and "
+                             f"eval.json (a seed's directory, or a group directory for all its "
+                             f"seeds)")
+    last = _last_row(paths["metrics.csv"])
+    if "options/start_covered" not in last:
+        raise ValueError(f"{run_dir}: metrics.csv has no options/* columns; diagnose reads the "
+                         f"skill chain of DSC, dual, MF-DSC++ or MB-DSC++ runs")
+    with open(paths["eval.json"]) as f:
+        ev = json.load(f)
+    episodes = math.nan
+    if os.path.isfile(paths["config.json"]):
+        with open(paths["config.json"]) as f:
+            episodes = float(json.load(f).get("config", {}).get("eval_episodes", math.nan))
+    success = _num(ev, "eval/success_rate")
+    covered = _num(last, "options/start_covered") > 0.5
+    full = _num(last, "options/capacity_hit") > 0.5
+    g_exec = _num(last, "options/gestation_executions", 0.0)
+    g_succ = _num(last, "options/gestation_successes", 0.0)
+    g_parent = int(_num(last, "options/gestation_parent", -1.0))
+    stalled = g_exec >= STALLED_LINK_EXECUTIONS and g_succ == 0
+    falls = _num(ev, "eval/flipped_failures")
+    failures = round((1.0 - success) * episodes) if math.isfinite(episodes) else math.nan
+    weak = sorted(int(k.rsplit("/", 1)[1]) for k, v in ev.items()
+                  if k.startswith("eval/option_success/") and int(k.rsplit("/", 1)[1]) > 0
+                  and isinstance(v, (int, float)) and math.isfinite(v) and v < WEAK_LINK)
+    if success >= SOLVED:
+        verdict = "solved"
+    elif covered:
+        parts = []
+        if failures and math.isfinite(falls) and falls >= FALLS_SHARE * failures:
+            parts.append("falls")
+        if weak:
+            parts.append("weak link" + ("s" if len(weak) > 1 else "") + " "
+                         + ", ".join(str(w) for w in weak))
+        verdict = "; ".join(parts) or "start covered, failing on the way"
+    elif full:
+        verdict = "table full"
+    elif stalled:
+        verdict = f"stalled link (targets option {g_parent}, {int(g_exec)} executions)"
+    else:
+        verdict = "not covered"
+    return {"run": run_dir, "success": success, "start_covered": covered,
+            "options": int(_num(last, "options/num_options", 0.0)), "table_full": full,
+            "falls": falls, "failures": failures, "weak_links": weak, "stalled_link": stalled,
+            "verdict": verdict}
+
+
+def diagnose(run_dirs: Sequence[str]) -> list:
+    """:func:`diagnose_run` of every run; a seed group's directory stands for its seeds."""
+    from dscpp_jax import group_train
+    out = []
+    for d in run_dirs:
+        if os.path.isdir(d) and group_train.is_group_dir(d):
+            out += [diagnose_run(s) for s in group_train.seed_dirs(d)]
+        else:
+            out.append(diagnose_run(d))
+    return out
+
+
+def format_table(rows: Sequence[dict], root: Optional[str] = None) -> str:
+    """A Markdown table of :func:`diagnose` rows (run paths relative to ``root``)."""
+    lines = ["| " + " | ".join(COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
+    for r in rows:
+        run = os.path.relpath(r["run"], root) if root else r["run"]
+        falls = ("-" if not math.isfinite(r["falls"]) else
+                 f"{int(r['falls'])} of {int(r['failures'])}" if math.isfinite(r["failures"])
+                 else f"{int(r['falls'])}")
+        cells = [run, f"{r['success']:.2f}", "yes" if r["start_covered"] else "no",
+                 f"{r['options']}" + (" (full)" if r["table_full"] else ""), falls,
+                 ", ".join(map(str, r["weak_links"])) or "-", r["verdict"]]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)

@@ -1,0 +1,82 @@
+"""diagnose: each way a chain fails from the start, read off hand-written metrics.csv / eval.json."""
+import csv
+import json
+import math
+
+import pytest
+
+from dscpp_jax import cli
+from dscpp_jax import diagnose as D
+
+
+def _run(tmp_path, name, last, ev, episodes=100):
+    d = tmp_path / name
+    d.mkdir()
+    row = {"iteration": 5, "options/start_covered": 0, "options/capacity_hit": 0,
+           "options/num_options": 10, "options/gestation_executions": 0,
+           "options/gestation_successes": 0, "options/gestation_parent": -1, **last}
+    with open(d / "metrics.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(row))
+        w.writeheader()
+        w.writerow({**row, "iteration": 4, "options/start_covered": 1})   # only the last row counts
+        w.writerow(row)
+    with open(d / "eval.json", "w") as f:
+        json.dump({"eval/flipped_failures": 0.0, **ev}, f)
+    with open(d / "config.json", "w") as f:
+        json.dump({"config": {"eval_episodes": episodes}}, f)
+    return str(d)
+
+
+def test_each_failure_gets_its_verdict(tmp_path):
+    cases = {
+        "solved": ({"options/start_covered": 1}, {"eval/success_rate": 0.9}, "solved"),
+        "falls": ({"options/start_covered": 1},
+                  {"eval/success_rate": 0.6, "eval/flipped_failures": 30.0}, "falls"),
+        "weak": ({"options/start_covered": 1},
+                 {"eval/success_rate": 0.1, "eval/flipped_failures": 5.0,
+                  "eval/option_success/0": 0.0, "eval/option_success/3": 0.9,
+                  "eval/option_success/7": 0.05, "eval/option_success/8": math.nan},
+                 "weak link 7"),
+        "full": ({"options/capacity_hit": 1, "options/num_options": 24},
+                 {"eval/success_rate": 0.0}, "table full"),
+        "stalled": ({"options/gestation_executions": 1200, "options/gestation_parent": 15},
+                    {"eval/success_rate": 0.0}, "stalled link (targets option 15, 1200 executions)"),
+        "slow": ({"options/gestation_executions": 1200, "options/gestation_successes": 2},
+                 {"eval/success_rate": 0.0}, "not covered"),
+    }
+    for name, (last, ev, verdict) in cases.items():
+        r = D.diagnose_run(_run(tmp_path, name, last, ev))
+        assert r["verdict"] == verdict, name
+    falls = D.diagnose_run(str(tmp_path / "falls"))
+    assert falls["falls"] == 30 and falls["failures"] == 40 and falls["start_covered"]
+    assert D.diagnose_run(str(tmp_path / "weak"))["weak_links"] == [7]   # not the global option
+    table = D.format_table([D.diagnose_run(str(tmp_path / n)) for n in cases], str(tmp_path))
+    assert "| full | 0.00 | no | 24 (full) | 0 of 100 | - | table full |" in table
+    assert "| falls | 0.60 | yes | 10 | 30 of 40 | - | falls |" in table
+
+
+def test_diagnose_takes_groups_and_says_what_is_missing(tmp_path, capsys):
+    from dscpp_jax import group_train
+    a = _run(tmp_path, "a", {"options/start_covered": 1}, {"eval/success_rate": 1.0})
+    with pytest.raises(ValueError, match="no metrics.csv"):
+        D.diagnose_run(str(tmp_path))
+    (tmp_path / "a" / "eval.json").rename(tmp_path / "eval.json.bak")
+    with pytest.raises(ValueError, match="no eval.json"):
+        D.diagnose_run(a)
+    (tmp_path / "eval.json.bak").rename(tmp_path / "a" / "eval.json")
+    flat = _run(tmp_path, "flat", {}, {"eval/success_rate": 0.0})
+    with open(f"{flat}/metrics.csv", "w") as f:
+        f.write("iteration,train/episode_success\n1,0.0\n")
+    with pytest.raises(ValueError, match="options/"):
+        D.diagnose_run(flat)
+    # a group directory stands for its seeds
+    (tmp_path / "g").mkdir()
+    monkey = pytest.MonkeyPatch()
+    monkey.setattr(group_train, "is_group_dir", lambda d: d == str(tmp_path / "g"))
+    monkey.setattr(group_train, "seed_dirs", lambda d: [a, a])
+    try:
+        assert [r["run"] for r in D.diagnose([str(tmp_path / "g"), a])] == [a, a, a]
+        assert cli.main(["diagnose", a]) == 0
+    finally:
+        monkey.undo()
+    assert "| solved |" in capsys.readouterr().out
