@@ -21,6 +21,7 @@ import time
 from typing import Any, Optional
 
 from dscpp_jax.config import ALGOS, PRESETS, SUBGOALS, Config, parse_value, preset
+from dscpp_jax.diagnose import link_stalled
 
 
 class TrainingDiverged(RuntimeError):
@@ -191,19 +192,15 @@ def stuck_chain_warning(metrics: dict, cfg: Config, who: str = "") -> Optional[s
             f"rows, e.g. --set max_options={cfg.max_options + 8}.")
 
 
-from dscpp_jax.diagnose import STALLED_LINK_EXECUTIONS  # noqa: E402  (failed executions, none
-# successful, before the link in gestation counts as stalled)
-
-
 def stalled_link_warning(metrics: dict, cfg: Config, who: str = "") -> Optional[str]:
-    """The warning for a chain link in gestation that has failed ``STALLED_LINK_EXECUTIONS`` or
+    """The warning for a chain link in gestation that has failed ``diagnose.STALLED_LINK_EXECUTIONS`` or
     more executions without one success (``options/gestation_executions``,
     ``options/gestation_successes``), or None. Until it matures no new link is made, so the chain
     has stopped growing. Seen on the ant's medium maze, where such a link targeted an option in a
     dead end while that option's frontier stayed open (``experiments/results/paper/README.md``)."""
-    n = metrics.get("options/gestation_executions", 0)
-    if n < STALLED_LINK_EXECUTIONS or metrics.get("options/gestation_successes", 1) > 0:
+    if not link_stalled(metrics):
         return None
+    n = metrics["options/gestation_executions"]
     parent = int(metrics.get("options/gestation_parent", -1))
     return (f"warning: {who}the option in gestation (it targets option {parent}) has failed "
             f"{int(n)} executions without one success, so the chain has stopped growing there. "

@@ -34,6 +34,14 @@ FALLS_SHARE = 0.5         # falls: at least this share of the failed evaluation 
 COLUMNS = ("run", "success", "start covered", "options", "falls", "weak links", "verdict")
 
 
+def link_stalled(metrics: dict) -> bool:
+    """The link in gestation has failed at least ``STALLED_LINK_EXECUTIONS`` executions without a
+    success (``options/gestation_executions``, ``options/gestation_successes`` of one iteration's
+    metrics or ``metrics.csv`` row)."""
+    return (_num(metrics, "options/gestation_executions", 0.0) >= STALLED_LINK_EXECUTIONS
+            and _num(metrics, "options/gestation_successes", 1.0) == 0)
+
+
 def _last_row(path: str) -> dict:
     last = None
     with open(path, newline="") as f:
@@ -76,9 +84,8 @@ def diagnose_run(run_dir: str) -> dict:
     covered = _num(last, "options/start_covered") > 0.5
     full = _num(last, "options/capacity_hit") > 0.5
     g_exec = _num(last, "options/gestation_executions", 0.0)
-    g_succ = _num(last, "options/gestation_successes", 0.0)
     g_parent = int(_num(last, "options/gestation_parent", -1.0))
-    stalled = g_exec >= STALLED_LINK_EXECUTIONS and g_succ == 0
+    stalled = link_stalled(last)
     falls = _num(ev, "eval/flipped_failures")
     failures = round((1.0 - success) * episodes) if math.isfinite(episodes) else math.nan
     weak = sorted(int(k.rsplit("/", 1)[1]) for k, v in ev.items()
