@@ -22,18 +22,9 @@ $(STAMP): pyproject.toml
 
 install: $(STAMP)
 
-# One process per test file: late in a single ~160-test process, XLA's CPU compiler has crashed
-# (SIGSEGV while compiling a function that compiles fine in a fresh process).
-# Compiling is most of the suite's time, so the files compile without XLA's expensive LLVM passes
-# (about a fifth less in all), except test_trainer.py: its learning runs execute more than they
-# compile, and it compares the interpreted MPC kernel with XLA's path at 1e-5.
-FAST_XLA := --xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true
+# Each test file in its own process, two at a time on two cores (tests/run_files.py says why).
 test: $(STAMP)
-	@fail=0; for f in tests/test_*.py; do echo "== $$f"; \
-	  case $$f in tests/test_trainer.py) flags= ;; *) flags="$${XLA_FLAGS:+$$XLA_FLAGS }$(FAST_XLA)" ;; esac; \
-	  env $${flags:+XLA_FLAGS="$$flags"} $(BIN)/python -m pytest -q -p no:cacheprovider $$f || fail=1; done; \
-	  if [ $$fail = 0 ]; then echo "all test files passed"; else echo "some test files FAILED"; fi; \
-	  exit $$fail
+	$(BIN)/python tests/run_files.py $(ARGS)
 
 train: $(STAMP)
 	$(BIN)/python -m dscpp_jax.cli train --env $(ENV) --algo $(ALGO) $(if $(SEEDS),--seeds $(SEEDS),--seed $(SEED)) $(ARGS)
