@@ -13,7 +13,12 @@ already writes (``docs/training.md``; the medium maze in ``experiments/results/p
 - ``stalled link``: no option's region holds the start and the link in gestation has failed at
   least ``STALLED_LINK_EXECUTIONS`` executions without a success;
 - ``not covered``: no option's region holds the start yet, for none of those reasons (a chain
-  still growing when the episodes ran out).
+  still growing when the episodes ran out);
+- ``broke late`` (before any of the above): the in-band evaluation's last window
+  (``inband/success_rate``, episodes that began in about the last 20-40 iterations) was at or
+  above ``SOLVED`` and the final evaluation is below it by more than ``LATE_DROP`` (over three
+  standard errors of a 32- against a 100-episode estimate near 0.9): a chain that worked broke in
+  the last iterations, typically when a refit moved one link's region.
 
 Only the lean files are read (no checkpoint), so it works on results copied off a GPU host.
 ``python -m dscpp_jax.cli diagnose RUN_OR_GROUP_DIR ...`` prints one row per seed.
@@ -29,9 +34,11 @@ from typing import Optional, Sequence
 SOLVED = 0.8              # success from the start at or above this: nothing to diagnose
 WEAK_LINK = 0.2           # an option that succeeds in fewer of its evaluation executions is weak
 STALLED_LINK_EXECUTIONS = 1000
+LATE_DROP = 0.2           # broke late: the final evaluation this far below the in-band window
 FALLS_SHARE = 0.5         # falls: at least this share of the failed evaluation episodes
 
-COLUMNS = ("run", "success", "start covered", "options", "falls", "weak links", "verdict")
+COLUMNS = ("run", "success", "in-band at the end", "start covered", "options", "falls",
+           "weak links", "verdict")
 
 
 def link_stalled(metrics: dict) -> bool:
@@ -81,6 +88,7 @@ def diagnose_run(run_dir: str) -> dict:
         with open(paths["config.json"]) as f:
             episodes = float(json.load(f).get("config", {}).get("eval_episodes", math.nan))
     success = _num(ev, "eval/success_rate")
+    inband = _num(last, "inband/success_rate")
     covered = _num(last, "options/start_covered") > 0.5
     full = _num(last, "options/capacity_hit") > 0.5
     g_exec = _num(last, "options/gestation_executions", 0.0)
@@ -107,7 +115,10 @@ def diagnose_run(run_dir: str) -> dict:
         verdict = f"stalled link (targets option {g_parent}, {int(g_exec)} executions)"
     else:
         verdict = "not covered"
-    return {"run": run_dir, "success": success, "start_covered": covered,
+    if (success < SOLVED and math.isfinite(inband) and inband >= SOLVED
+            and success < inband - LATE_DROP):
+        verdict = f"broke late ({verdict})"
+    return {"run": run_dir, "success": success, "inband": inband, "start_covered": covered,
             "options": int(_num(last, "options/num_options", 0.0)), "table_full": full,
             "falls": falls, "failures": failures, "weak_links": weak, "stalled_link": stalled,
             "verdict": verdict}
@@ -133,7 +144,9 @@ def format_table(rows: Sequence[dict], root: Optional[str] = None) -> str:
         falls = ("-" if not math.isfinite(r["falls"]) else
                  f"{int(r['falls'])} of {int(r['failures'])}" if math.isfinite(r["failures"])
                  else f"{int(r['falls'])}")
-        cells = [run, f"{r['success']:.2f}", "yes" if r["start_covered"] else "no",
+        inband = r.get("inband", math.nan)
+        cells = [run, f"{r['success']:.2f}", f"{inband:.2f}" if math.isfinite(inband) else "-",
+                 "yes" if r["start_covered"] else "no",
                  f"{r['options']}" + (" (full)" if r["table_full"] else ""), falls,
                  ", ".join(map(str, r["weak_links"])) or "-", r["verdict"]]
         lines.append("| " + " | ".join(cells) + " |")

@@ -43,6 +43,16 @@ def test_each_failure_gets_its_verdict(tmp_path):
                     {"eval/success_rate": 0.0}, "stalled link (targets option 15, 1200 executions)"),
         "slow": ({"options/gestation_executions": 1200, "options/gestation_successes": 2},
                  {"eval/success_rate": 0.0}, "not covered"),
+        # the in-band window still saw the chain work; the final evaluation did not
+        "late": ({"options/start_covered": 1, "inband/success_rate": 0.97},
+                 {"eval/success_rate": 0.0, "eval/option_success/23": 0.0},
+                 "broke late (weak link 23)"),
+        "late_but_solved": ({"options/start_covered": 1, "inband/success_rate": 0.97},
+                            {"eval/success_rate": 0.85}, "solved"),
+        "small_drop": ({"options/start_covered": 1, "inband/success_rate": 0.91},
+                       {"eval/success_rate": 0.79}, "start covered, failing on the way"),
+        "inband_low": ({"options/start_covered": 1, "inband/success_rate": 0.5},
+                       {"eval/success_rate": 0.6, "eval/flipped_failures": 30.0}, "falls"),
     }
     for name, (last, ev, verdict) in cases.items():
         r = D.diagnose_run(_run(tmp_path, name, last, ev))
@@ -51,8 +61,9 @@ def test_each_failure_gets_its_verdict(tmp_path):
     assert falls["falls"] == 30 and falls["failures"] == 40 and falls["start_covered"]
     assert D.diagnose_run(str(tmp_path / "weak"))["weak_links"] == [7]   # not the global option
     table = D.format_table([D.diagnose_run(str(tmp_path / n)) for n in cases], str(tmp_path))
-    assert "| full | 0.00 | no | 24 (full) | 0 of 100 | - | table full |" in table
-    assert "| falls | 0.60 | yes | 10 | 30 of 40 | - | falls |" in table
+    assert "| full | 0.00 | - | no | 24 (full) | 0 of 100 | - | table full |" in table
+    assert "| falls | 0.60 | - | yes | 10 | 30 of 40 | - | falls |" in table
+    assert "| late | 0.00 | 0.97 | yes | 10 | 0 of 100 | 23 | broke late (weak link 23) |" in table
 
 
 def test_diagnose_takes_groups_and_says_what_is_missing(tmp_path, capsys):
