@@ -30,7 +30,7 @@ MODEL_BASED_ALGOS = ("mb_dscpp", "mb_flat", "mb_flat_value")
 RETIRED_FIELDS: dict[str, Any] = dict(
     td3_upright_weight=0.0, td3_upright_min=0.5, td3_absorb_fallen=False,
     mpc_upright_weight=0.0, mpc_upright_min=0.5, gestation_patience=0,
-    frontier_metric="euclidean")
+    frontier_metric="euclidean", frontier_stall=0)
 # Fields only the host driver reads (the TrainState carries `Config.device_view()`).
 HOST_ONLY_DEFAULTS = dict(seed=0, total_env_steps=1, total_episodes=0, eval_every=0,
                           log_every=1, checkpoint_every=0, keep_checkpoints=1, preset="paper")
@@ -83,9 +83,6 @@ class Config:
     frontier_parent: bool = False      # a new option targets the newest mature option with an
                                        # open frontier; a link in gestation whose target's frontier
                                        # closed (a filled dead end) is re-targeted there
-    frontier_stall: int = 0            # with frontier_parent: a link in gestation that failed
-                                       # this many executions without a success closes its
-                                       # target's frontier for good and is re-targeted (0: off)
     frontier_radius: float = 5.0
     frontier_inner_radius: float = 0.0  # frontier starts keep at least this far from the target's
                                        # examples (longer links; 0: anywhere on the frontier)
@@ -361,9 +358,6 @@ class Config:
         need(0 <= self.frontier_inner_radius < self.frontier_radius,
              f"frontier_inner_radius={self.frontier_inner_radius} and frontier_radius="
              f"{self.frontier_radius}: need 0 <= frontier_inner_radius < frontier_radius")
-        need(self.frontier_stall >= 0 and (self.frontier_stall == 0 or self.frontier_parent),
-             f"frontier_stall={self.frontier_stall} must be >= 0, and > 0 only with "
-             f"frontier_parent=true (it re-targets a stalled link the way frontier parents do)")
         need(self.frontier_candidates >= 1 and self.frontier_min_open >= 1,
              f"frontier_candidates={self.frontier_candidates} and frontier_min_open="
              f"{self.frontier_min_open} must be >= 1")

@@ -17,11 +17,6 @@ of one probe address that:
   filled dead end) is re-targeted there, its examples cleared. The chain becomes a tree whose
   branches end in dead ends; the policy over options still walks the rows in increasing index
   (every parent is older than its child).
-- **stalled links** (``Config.frontier_stall``, with frontier parents): a link in gestation that
-  has failed that many executions without one success closes its target's frontier for good
-  (``Chain.closed``), so it is re-targeted like a link whose target's frontier closed, and no
-  later link targets that row. The probe counts uncovered space within a straight-line radius,
-  through walls, so a frontier can stay open where no execution can get through.
 
 The probe is a Monte Carlo estimate from candidate states drawn by the env's diverse-start sampler
 (uniform over free space, the same knowledge diverse starts already use): candidate ``m`` is on the
@@ -92,22 +87,3 @@ def frontier_parent(chain: Chain, is_open: jax.Array) -> jax.Array:
     newest = jnp.max(jnp.where(mature, idx, -1))
     newest_open = jnp.max(jnp.where(mature & is_open, idx, -1))
     return jnp.where(newest_open >= 0, newest_open, newest).astype(jnp.int32)
-
-
-def close_stalled(chain: Chain, is_open: jax.Array, stall_executions: int):
-    """``(chain, is_open)``: where the link in gestation has at least ``stall_executions``
-    executions and no success, its target row joins ``chain.closed`` (sticky), and every closed
-    row is shut in ``is_open`` (K,). Pass the result to :func:`dscpp_jax.options.grow_chain`,
-    which then re-targets the stalled link to the newest other row with an open frontier."""
-    if chain.closed is None:
-        raise ValueError("close_stalled: the chain has no `closed` rows (chain.closed is None); "
-                         "start it with closed=jnp.zeros(max_options, bool)")
-    if int(stall_executions) < 1:
-        raise ValueError(f"close_stalled: stall_executions={stall_executions} must be >= 1")
-    g = gestation_row(chain)
-    gc = jnp.clip(g, 0)
-    p = chain.parent[gc]
-    stalled = ((g >= 0) & (p >= 0) & (chain.executions[gc] >= int(stall_executions))
-               & (chain.successes[gc] == 0))
-    closed = chain.closed | ((jnp.arange(chain.cfg.max_options) == p) & stalled)
-    return chain.replace(closed=closed), jnp.asarray(is_open, bool) & ~closed

@@ -139,10 +139,6 @@ class Chain:
     robust_ok: jax.Array        # (K, P, L) bool: ... and its +-tol neighbourhood too
     num_options: jax.Array      # () int32 rows in use (global + goal + links)
     capacity_hit: jax.Array     # () bool: a new option was needed but the table was full
-    # (K,) bool, rows whose frontier a stalled link closed for good (dscpp_jax.frontier,
-    # `close_stalled`); None unless that rule is on, so that a chain without it keeps the layout
-    # of checkpoints written before the field existed
-    closed: Optional[jax.Array] = None
 
     @property
     def active(self) -> jax.Array:

@@ -694,9 +694,6 @@ def _learn(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[str
             is_open = frontier.open_rows(frontier.frontier_probe(chain, cand,
                                                                  config.frontier_radius),
                                          config.frontier_min_open)
-            if config.frontier_stall > 0:
-                chain, is_open = frontier.close_stalled(chain, is_open, config.frontier_stall)
-                metrics["frontier/closed_rows"] = jnp.sum(chain.closed).astype(jnp.float32)
             g0, p0 = frontier.gestation_row(chain), chain.parent
             chain = _grow_chain(config, chain, jnp.asarray(env.start, jnp.float32), is_open)
             g = frontier.gestation_row(chain)
@@ -878,10 +875,7 @@ def chain_config(config: Config):
 
 def _chain_init(config: Config, goal):
     from dscpp_jax.options import chain_init
-    chain = chain_init(chain_config(config), goal)
-    if config.frontier_stall > 0:
-        chain = chain.replace(closed=jnp.zeros(config.max_options, bool))
-    return chain
+    return chain_init(chain_config(config), goal)
 
 
 def _dp_table_init(config: Config, chain):

@@ -118,53 +118,6 @@ def test_a_new_option_targets_the_newest_open_row(two_links):
     assert int(_grow_with(ch, [False] * 5).parent[4]) == 3
 
 
-def _executions(chain, option, n, seed):
-    """n failed executions of ``option`` (no success)."""
-    rng = np.random.default_rng(seed)
-    B, T_ = n, chain.cfg.buffer_len
-    start = rng.uniform(-1, 1, (B, 2)).astype(np.float32)
-    traj = rng.uniform(-1, 1, (B, T_, 2)).astype(np.float32)
-    return record(chain, np.full((B,), option, np.int32), np.zeros(B, bool), start, traj,
-                  np.ones((B, T_), bool), np.ones(B, bool))
-
-
-def test_a_stalled_link_closes_its_target_for_good(two_links):
-    close = jax.jit(F.close_stalled, static_argnums=2)
-    grow = jax.jit(O.grow_chain)
-    every_row_open = jnp.array([False, True, True, False, False])
-    # a fresh link 3 (no success) targeting link 2, whose frontier is open, as is the goal's
-    ch = O.clear_row(two_links, 3, True).replace(closed=jnp.zeros(CFG.max_options, bool))
-    failed = _executions(ch, 3, 6, seed=5)
-    assert int(failed.executions[3]) == 6 and int(failed.successes[3]) == 0
-    # under the threshold, or with one success: nothing closes, nothing is re-targeted
-    for chain, stall in ((failed, 7), (_successes(failed, 3, (0.0, 0.5), 1, seed=6), 6)):
-        out, is_open = close(chain, every_row_open, stall)
-        assert not bool(out.closed.any())
-        np.testing.assert_array_equal(is_open, every_row_open)
-        np.testing.assert_array_equal(grow(out, START_XY, is_open).parent, ch.parent)
-    # at the threshold: row 2 closes, and growth re-targets link 3 to the goal option, its
-    # counters cleared
-    out, is_open = close(failed, every_row_open, 6)
-    np.testing.assert_array_equal(out.closed, [False, False, True, False, False])
-    np.testing.assert_array_equal(is_open, [False, True, False, False, False])
-    grown = grow(out, START_XY, is_open)
-    np.testing.assert_array_equal(grown.parent, [-1, -1, 1, 1, -1])
-    assert int(grown.executions[3]) == 0 and bool(grown.closed[2])
-    # for good: with the link's counters gone and row 2's frontier open again, row 2 stays shut
-    again, is_open = close(grown, every_row_open, 6)
-    np.testing.assert_array_equal(again.closed, out.closed)
-    np.testing.assert_array_equal(is_open, [False, True, False, False, False])
-    np.testing.assert_array_equal(grow(again, START_XY, is_open).parent, grown.parent)
-
-
-def test_close_stalled_refuses_a_chain_without_the_rule(two_links):
-    with pytest.raises(ValueError, match="closed"):
-        F.close_stalled(two_links, jnp.ones(CFG.max_options, bool), 5)
-    with pytest.raises(ValueError, match="stall_executions"):
-        F.close_stalled(two_links.replace(closed=jnp.zeros(CFG.max_options, bool)),
-                        jnp.ones(CFG.max_options, bool), 0)
-
-
 def test_diverse_starts_take_the_frontier_share():
     cfg = tiny("mb_dscpp", num_envs=64, frontier_start_prob=0.5, task_start_prob=0.25)
     env = T.make_env(cfg)
@@ -188,13 +141,13 @@ def test_diverse_starts_take_the_frontier_share():
 def test_training_with_the_frontier_runs_and_groups_equal_separate_runs():
     # both uses on, under a seed vmap and alone (the logic itself: the tests above)
     cfg = tiny("mf_dscpp", frontier_start_prob=0.5, frontier_parent=True, frontier_candidates=64,
-               frontier_radius=4.0, frontier_min_open=2, frontier_stall=3)
+               frontier_radius=4.0, frontier_min_open=2)
     keys = jax.random.split(jax.random.PRNGKey(5), 2)
     states = jax.vmap(lambda k: T.init(k, cfg))(keys)
     vstep = jax.jit(T.train_step_group_impl)
     for _ in range(8):      # past the warm-up, into chain growth
         states, vm = vstep(states)
-    for name in ("frontier/retargeted", "frontier/open_rows", "frontier/closed_rows"):
+    for name in ("frontier/retargeted", "frontier/open_rows"):
         assert np.all(np.isfinite(np.asarray(vm[name])))
     s = T.init(keys[1], cfg)
     for _ in range(8):
@@ -211,8 +164,6 @@ def test_training_with_the_frontier_runs_and_groups_equal_separate_runs():
     (dict(frontier_radius=0.0), "frontier_radius"),
     (dict(frontier_inner_radius=5.0, frontier_radius=5.0), "frontier_inner_radius"),
     (dict(frontier_candidates=0), "frontier_candidates"),
-    (dict(frontier_stall=-1, frontier_parent=True), "frontier_stall"),
-    (dict(frontier_stall=100), "frontier_parent"),
 ])
 def test_bad_frontier_settings_are_refused(kw, match):
     with pytest.raises(ValueError, match=match):
