@@ -625,6 +625,8 @@ def cmd_diagnose(args) -> int:
     from dscpp_jax import diagnose
     rows = diagnose.diagnose(args.runs)
     print(diagnose.format_table(rows))
+    print()
+    print(diagnose.format_summary(rows))
     return 0
 
 

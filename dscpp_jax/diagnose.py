@@ -151,3 +151,21 @@ def format_table(rows: Sequence[dict], root: Optional[str] = None) -> str:
                  ", ".join(map(str, r["weak_links"])) or "-", r["verdict"]]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
+
+
+def verdict_kind(verdict: str) -> str:
+    """The verdict without its details: "weak links 3, 7" -> "weak link", "broke late (falls)"
+    -> "broke late", "stalled link (targets option 15, ...)" -> "stalled link", "falls; weak
+    link 7" -> "falls; weak link"."""
+    parts = [p.strip() for p in verdict.split(" (", 1)[0].split(";")]
+    return "; ".join("weak link" if p.startswith("weak link") else p for p in parts)
+
+
+def format_summary(rows: Sequence[dict]) -> str:
+    """One line: how many runs got each kind of verdict, most common first (ties by name)."""
+    counts: dict = {}
+    for r in rows:
+        k = verdict_kind(r["verdict"])
+        counts[k] = counts.get(k, 0) + 1
+    parts = sorted(counts.items(), key=lambda kv: (-kv[1], kv[0]))
+    return f"{len(rows)} runs: " + ", ".join(f"{k} {n}" for k, n in parts)

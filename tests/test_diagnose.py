@@ -64,6 +64,13 @@ def test_each_failure_gets_its_verdict(tmp_path):
     assert "| full | 0.00 | - | no | 24 (full) | 0 of 100 | - | table full |" in table
     assert "| falls | 0.60 | - | yes | 10 | 30 of 40 | - | falls |" in table
     assert "| late | 0.00 | 0.97 | yes | 10 | 0 of 100 | 23 | broke late (weak link 23) |" in table
+    # the summary counts kinds, details left out: "weak link 7" and "weak link 23" are one kind
+    assert D.verdict_kind("stalled link (targets option 15, 1200 executions)") == "stalled link"
+    assert D.verdict_kind("falls; weak links 3, 4") == "falls; weak link"
+    summary = D.format_summary([D.diagnose_run(str(tmp_path / n)) for n in cases])
+    assert summary == ("10 runs: falls 2, solved 2, broke late 1, not covered 1, "
+                       "stalled link 1, start covered, failing on the way 1, table full 1, "
+                       "weak link 1")
 
 
 def test_diagnose_takes_groups_and_says_what_is_missing(tmp_path, capsys):
