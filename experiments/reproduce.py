@@ -1119,6 +1119,24 @@ def _shown_path(path: str) -> str:
 NOTES_HEADING = "\n## Notes\n"
 
 
+def failure_lines(data: Data) -> list:
+    """One line per group with a skill chain: how many of its finished seeds got each
+    `dscpp_jax.diagnose` verdict (solved, falls, weak link, broke late, ...)."""
+    from dscpp_jax import diagnose
+    out = []
+    for info in data.info.values():
+        rows = []
+        for d in info["seeds"]:
+            try:
+                rows.append(diagnose.diagnose_run(d))
+            except ValueError:   # not finished (no eval.json) or no skill chain (flat learners)
+                continue
+        if rows:
+            out.append(f"- `{os.path.basename(os.path.normpath(info['dir']))}`: "
+                       f"{diagnose.format_summary(rows)}")
+    return out
+
+
 def write_readme(data: Data, args, figures: dict, status: dict) -> str:
     """The claims table and figure list as README.md in --out; a hand-written section that starts
     with the heading "## Notes" below them survives a re-run."""
@@ -1175,6 +1193,11 @@ def write_readme(data: Data, args, figures: dict, status: dict) -> str:
                          f"numbers in [`{csvp}`]({csvp})")
         else:
             lines.append(f"- Figure {fig}: not drawn (no runs yet)")
+    why = failure_lines(data)
+    if why:
+        lines += ["", "How each group's seeds end (`python -m dscpp_jax.cli diagnose GROUP_DIR` "
+                  "gives the row per seed; the verdicts are explained in `docs/training.md`):", ""]
+        lines += why
     if status:
         lines += ["", "Runs (this call):", ""]
         lines += [f"- `{k}`: {v}" for k, v in status.items()]

@@ -114,6 +114,13 @@ def test_reproduce_trains_draws_reports_then_skips(tmp_path, capsys, monkeypatch
                in l for l in table)
     assert any(l.startswith("| 6 | u_maze: both flat") and l.endswith("| not run |")
                for l in table)
+    # every group with a skill chain says how its seeds end (diagnose's verdicts)
+    why = [l for l in readme.splitlines() if l.startswith("- `point_") and " runs: " in l]
+    assert {l.split("`")[1] for l in why} >= {"point_u_maze-mf_dscpp-g0-1",
+                                               "point_u_maze-dsc-g0-1"}, why
+    for l in why:
+        counts = [int(c.rsplit(" ", 1)[1]) for c in l.split(" runs: ")[1].split(", ")]
+        assert sum(counts) == int(l.split(" runs: ")[0].rsplit(" ", 1)[1]) == 2, l
 
     # a second call finds every group finished: no training, metrics untouched
     before = _metrics(runs)
