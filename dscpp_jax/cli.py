@@ -713,7 +713,22 @@ def cmd_train(args) -> int:
     print(f"run: {run_dir}\nenv steps {int(state.counters.env_steps)}, episodes "
           f"{int(state.counters.episodes)}, eval success {ev['eval/success_rate']:.2f}, "
           f"options {int(ev['eval/num_options'])}")
+    verdict = _chain_verdict(cfg, run_dir)
+    if verdict:
+        print(f"chain: {verdict} (python -m dscpp_jax.cli diagnose {run_dir})")
     return 0
+
+
+def _chain_verdict(cfg, run_dir: str):
+    """`diagnose`'s verdict for a finished run with a skill chain (None for flat learners or
+    when the run left no eval.json)."""
+    if not cfg.hierarchical:
+        return None
+    from dscpp_jax import diagnose
+    try:
+        return diagnose.diagnose_run(run_dir)["verdict"]
+    except (ValueError, OSError):
+        return None
 
 
 # ------------------------------------------------------------------------------------------------
@@ -793,8 +808,10 @@ def cmd_train_group(args) -> int:
     succ = np.array([s["eval/success_rate"] for s in summaries])
     print(f"group: {group_dir} ({len(seeds)} seeds on {jax.device_count()} devices)")
     for i, s in enumerate(seeds):
+        verdict = _chain_verdict(cfg, group_train.seed_dir(group_dir, s))
         print(f"  s{s}: env steps {int(c.env_steps[i])}, episodes {int(c.episodes[i])}, eval "
-              f"success {succ[i]:.2f}, options {int(summaries[i]['eval/num_options'])}")
+              f"success {succ[i]:.2f}, options {int(summaries[i]['eval/num_options'])}"
+              + (f", chain: {verdict}" if verdict else ""))
     print(f"eval success mean {succ.mean():.2f} min {succ.min():.2f} max {succ.max():.2f}")
     return 0
 

@@ -48,6 +48,11 @@ def test_cli_train_resume_interrupt_eval_plot(tmp_path, monkeypatch, capsys):
     final = json.load(open(os.path.join(run, "eval.json")))
     assert final["iteration"] == 2 and final["seed"] == 0 and final["env_steps"] == 160
     assert 0.0 <= final["eval/success_rate"] <= 1.0
+    # and the run's last line says why its chain ends where it does (diagnose's verdict)
+    out = capsys.readouterr().out
+    from dscpp_jax import diagnose
+    verdict = diagnose.diagnose_run(run)["verdict"]
+    assert f"chain: {verdict} (python -m dscpp_jax.cli diagnose {run})" in out
 
     # resume continues from iteration 2; Ctrl-C during iteration 4 saves and exits cleanly
     calls = {"n": 0}

@@ -434,9 +434,13 @@ def test_a_stuck_chain_warning_names_its_seed_once(tmp_path, monkeypatch, capsys
     import dscpp_jax.cli as cli
     monkeypatch.setattr(cli, "stuck_chain_warning", lambda m, cfg, who="": (
         f"warning: {who}stuck" if cfg.seed == 1 else None))
+    # each seed's line ends with diagnose's verdict on that seed's directory
+    monkeypatch.setattr(cli, "_chain_verdict", lambda cfg, d: f"verdict of {os.path.basename(d)}")
     assert main(TRAIN + ["--seeds", "0-1", "--run-dir", str(tmp_path / "g")]) == 0
-    err = capsys.readouterr().err
+    out, err = capsys.readouterr()
     assert err.count("stuck") == 1 and "seed 1, iteration 1: stuck" in err
+    lines = [l for l in out.splitlines() if l.startswith(("  s0:", "  s1:"))]
+    assert [l.rsplit(", chain: ", 1)[1] for l in lines] == ["verdict of s0", "verdict of s1"]
 
 
 def test_a_seed_finishing_early_waits_for_the_next_evaluation(tmp_path, monkeypatch):
