@@ -21,7 +21,7 @@ import time
 from typing import Any, Optional
 
 from dscpp_jax.config import ALGOS, PRESETS, SUBGOALS, Config, parse_value, preset
-from dscpp_jax.diagnose import link_stalled
+from dscpp_jax import diagnose
 
 
 class TrainingDiverged(RuntimeError):
@@ -198,7 +198,7 @@ def stalled_link_warning(metrics: dict, cfg: Config, who: str = "") -> Optional[
     ``options/gestation_successes``), or None. Until it matures no new link is made, so the chain
     has stopped growing. Seen on the ant's medium maze, where such a link targeted an option in a
     dead end while that option's frontier stayed open (``experiments/results/paper/README.md``)."""
-    if not link_stalled(metrics):
+    if not diagnose.link_stalled(metrics):
         return None
     n = metrics["options/gestation_executions"]
     parent = int(metrics.get("options/gestation_parent", -1))
@@ -622,7 +622,6 @@ def cmd_plot(args) -> int:
 
 
 def cmd_diagnose(args) -> int:
-    from dscpp_jax import diagnose
     rows = diagnose.diagnose(args.runs)
     print(diagnose.format_table(rows))
     print()
@@ -724,7 +723,6 @@ def _chain_verdict(cfg, run_dir: str):
     when the run left no eval.json)."""
     if not cfg.hierarchical:
         return None
-    from dscpp_jax import diagnose
     try:
         return diagnose.diagnose_run(run_dir)["verdict"]
     except (ValueError, OSError):

@@ -25,6 +25,7 @@ Only the lean files are read (no checkpoint), so it works on results copied off 
 """
 from __future__ import annotations
 
+import collections
 import csv
 import json
 import math
@@ -163,9 +164,6 @@ def verdict_kind(verdict: str) -> str:
 
 def format_summary(rows: Sequence[dict]) -> str:
     """One line: how many runs got each kind of verdict, most common first (ties by name)."""
-    counts: dict = {}
-    for r in rows:
-        k = verdict_kind(r["verdict"])
-        counts[k] = counts.get(k, 0) + 1
+    counts = collections.Counter(verdict_kind(r["verdict"]) for r in rows)
     parts = sorted(counts.items(), key=lambda kv: (-kv[1], kv[0]))
     return f"{len(rows)} runs: " + ", ".join(f"{k} {n}" for k, n in parts)
