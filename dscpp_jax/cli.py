@@ -500,9 +500,12 @@ def cmd_eval(args) -> int:
 
     from dscpp_jax.evaluate import evaluate
     starts = parse_starts(args.starts)   # a typo here fails before anything loads
-    cfg, state = load_run(args.run)
+    from dscpp_jax import group_train
+    if group_train.is_group_dir(args.run):
+        return _eval_group(args, starts)
+    cfg, state = load_run(args.run, args.step)
     key = jax.random.PRNGKey(args.seed)
-    summary, res = evaluate(state, key, args.episodes, starts)
+    summary, res = evaluate(state, key, args.episodes, starts, explore=args.explore)
     summary["iteration"] = int(state.counters.iteration)
     summary["env_steps"] = int(state.counters.env_steps)
     summary["episodes_trained"] = int(state.counters.episodes)
@@ -510,7 +513,11 @@ def cmd_eval(args) -> int:
         summary["starts"] = starts
         summary["steps_per_start"] = np.asarray(res.steps).tolist()
         summary["success_per_start"] = np.asarray(res.success).astype(int).tolist()
-    name = "eval" + ("_starts" if starts else "")
+    # eval.json is the deterministic evaluation of the latest checkpoint; other kinds get names
+    # of their own, so that they never overwrite it
+    if args.explore:
+        summary["explore"] = True
+    name = _eval_name(args, starts)
     out_json = os.path.join(args.run, f"{name}.json")
     try:
         with open(out_json, "w") as f:
@@ -528,6 +535,65 @@ def cmd_eval(args) -> int:
         except OSError as e:
             raise _write_error(args.run, e, f"write {name}_trajectory.png") from None
         print(f"wrote {out_json} and {path}")
+    return 0
+
+
+def _eval_name(args, starts) -> str:
+    """eval.json is the deterministic evaluation of the latest checkpoint; other kinds get names
+    of their own (eval_starts, eval_explore, eval_stepN, combined), so they never overwrite it."""
+    return ("eval" + ("_starts" if starts else "") + ("_explore" if args.explore else "")
+            + (f"_step{args.step}" if args.step is not None else ""))
+
+
+def _eval_group(args, starts) -> int:
+    """`eval --run GROUP_DIR`: every seed of the group in one call; each seed's numbers equal
+    those of `eval --run GROUP_DIR/sN` with the same flags. Writes each seed's JSON (and
+    trajectory plot) into its directory and prints one line per seed."""
+    import jax
+    import numpy as np
+
+    from dscpp_jax import group_train
+    from dscpp_jax import seed_group as SG
+    seeds = group_train.read_group(args.run)["seeds"]
+    cfg, states = group_train.load_group(args.run, args.step)
+    summ, res = SG.evaluate_group(states, jax.random.PRNGKey(args.seed), args.episodes, starts,
+                                  explore=args.explore)
+    c = SG.to_host(states.counters)
+    name = _eval_name(args, starts)
+    rates = []
+    for i, seed in enumerate(seeds):
+        summary = dict(summ[i], iteration=int(c.iteration[i]), env_steps=int(c.env_steps[i]),
+                       episodes_trained=int(c.episodes[i]), seed=int(seed))
+        if args.explore:
+            summary["explore"] = True
+        one = SG.index_tree(res, i, len(seeds))
+        if starts is not None:
+            summary["starts"] = starts
+            summary["steps_per_start"] = np.asarray(one.steps).tolist()
+            summary["success_per_start"] = np.asarray(one.success).astype(int).tolist()
+        d = group_train.seed_dir(args.run, seed)
+        try:
+            with open(os.path.join(d, f"{name}.json"), "w") as f:
+                json.dump(summary, f, indent=2)
+            if not args.no_plot:
+                from dscpp_jax import plots
+                plots.plot_trajectory(cfg.override(seed=int(seed)), one,
+                                      os.path.join(d, f"{name}_trajectory.png"),
+                                      title=f"{cfg.env} {cfg.algo} seed {seed} (iteration "
+                                            f"{summary['iteration']})")
+        except OSError as e:
+            raise _write_error(d, e, f"write {name}.json") from None
+        rate = summary["eval/success_rate"]
+        rates.append(rate)
+        weak = [f"{k.split('/')[-1]}:{v:.2f}" for k, v in summary.items()
+                if k.startswith("eval/option_success/") and v == v and v < 0.8]
+        print(f"seed {seed}: success {rate:.2f} at iteration {summary['iteration']} "
+              f"({summary['episodes_trained']} episodes); options below 0.8: "
+              f"{' '.join(weak) if weak else 'none'}")
+    r = np.asarray(rates)
+    se = r.std(ddof=1) / np.sqrt(len(r)) if len(r) > 1 else 0.0
+    print(f"{len(r)} seeds: success {r.mean():.2f} +- {se:.2f} (standard error); wrote {name}.json "
+          f"in each seed's directory")
     return 0
 
 
@@ -870,12 +936,18 @@ def build_parser() -> argparse.ArgumentParser:
     _add_video_args(t, prefix="video-")
     t.set_defaults(func=cmd_train)
 
-    e = sub.add_parser("eval", help="evaluate a run's latest checkpoint")
-    e.add_argument("--run", required=True)
+    e = sub.add_parser("eval", help="evaluate a run's latest checkpoint (a seed group's: every "
+                                    "seed in one call)")
+    e.add_argument("--run", required=True, help="a run directory, a seed directory of a group, "
+                                                "or a group directory (all its seeds)")
     e.add_argument("--episodes", type=int, default=16)
     e.add_argument("--starts", default=None, help='start positions "x,y;x,y" (default: task start)')
     e.add_argument("--seed", type=int, default=0)
     e.add_argument("--no-plot", action="store_true")
+    e.add_argument("--step", type=int, default=None,
+                   help="checkpoint step (default: the latest; writes eval_stepN.json)")
+    e.add_argument("--explore", action="store_true",
+                   help="act with training's action noise (a diagnostic; writes eval_explore.json)")
     e.add_argument("--deterministic", action=argparse.BooleanOptionalAction, default=None,
                    help=det_help)
     e.add_argument("--compile-cache", default=None, metavar="DIR", help=cache_help)

@@ -42,10 +42,14 @@ class EvalResult:
 
 
 def _eval_impl(state: T.TrainState, key, num_episodes: int, starts=None, record: bool = False,
-               num_steps: Optional[int] = None) -> EvalResult:
+               num_steps: Optional[int] = None, explore: bool = False) -> EvalResult:
     """`record` (static) also keeps the observations, subgoals and (MJX envs) qpos of every step;
     off, the program is the same as without it. `num_steps` (static) caps the episodes at fewer
-    steps than `config.episode_length` (an episode cut short counts as not successful)."""
+    steps than `config.episode_length` (an episode cut short counts as not successful).
+    `explore` (static) acts with training's action noise instead of deterministically: the
+    actor's Gaussian noise (model-free; no random-action schedule) or MPC with random actions at
+    `random_action_prob` (model-based). A diagnostic: it tells a policy that is wrong apart from
+    one that is only stuck in one deterministic motion from nearly the same start every time."""
     config: Config = state.config
     N, L, K = num_episodes, config.episode_length, config.max_options
     env = T.make_env(config, worlds=config.group_size * N)
@@ -72,7 +76,7 @@ def _eval_impl(state: T.TrainState, key, num_episodes: int, starts=None, record:
         obs = es.obs
         ex = T._choose_options(config, env, chain, dp_table, td3, ex, obs, k_opt, active,
                                evaluation=True)
-        acts = T._policy_actions(config, td3, dyn, obs, ex.subgoal, k_act, False, 0.0,
+        acts = T._policy_actions(config, td3, dyn, obs, ex.subgoal, k_act, explore, 0.0,
                                  ex.option)
         nes = jax.vmap(env.step)(es, acts)
         nes = select_states(active, nes, es)
@@ -146,9 +150,11 @@ def _freeze_after_end(seq, steps):
     return jnp.where(after, last, seq)
 
 
-evaluate_episodes = jax.jit(_eval_impl, static_argnames=("num_episodes", "record", "num_steps"))
-"""Jitted `evaluate_episodes(state, key, num_episodes, starts=None, record=False, num_steps=None)
--> EvalResult` (`record`: also the per-step observations, subgoals and qpos, for videos)."""
+evaluate_episodes = jax.jit(_eval_impl, static_argnames=("num_episodes", "record", "num_steps",
+                                                         "explore"))
+"""Jitted `evaluate_episodes(state, key, num_episodes, starts=None, record=False, num_steps=None,
+explore=False) -> EvalResult` (`record`: also the per-step observations, subgoals and qpos, for
+videos; `explore`: with training's action noise)."""
 
 
 def summarize(result: EvalResult, prefix: str = "eval/") -> Dict[str, float]:
@@ -176,8 +182,10 @@ def summarize(result: EvalResult, prefix: str = "eval/") -> Dict[str, float]:
 
 
 def evaluate(state: T.TrainState, key: Optional[jax.Array] = None, num_episodes: Optional[int] = None,
-             starts=None) -> tuple[Dict[str, float], EvalResult]:
+             starts=None, explore: bool = False) -> tuple[Dict[str, float], EvalResult]:
     """Evaluate from the task start (or `starts`, (N, 2)); returns (scalar metrics, EvalResult).
+    `explore`: act with training's action noise (see `_eval_impl`), a diagnostic; the
+    success figures of the library are always deterministic.
 
     The default key depends only on the iteration, so evaluation never consumes the training
     PRNG stream.
@@ -199,7 +207,7 @@ def evaluate(state: T.TrainState, key: Optional[jax.Array] = None, num_episodes:
     if key is None:
         key = jax.random.fold_in(jax.random.PRNGKey(1_000_003),
                                  int(state.counters.iteration))
-    res = evaluate_episodes(state, key, n, starts)
+    res = evaluate_episodes(state, key, n, starts, explore=bool(explore))
     return summarize(res), res
 
 

@@ -88,6 +88,23 @@ def _agree(flags: np.ndarray) -> np.ndarray:
     return np.asarray(multihost_utils.broadcast_one_to_all(flags))
 
 
+def load_group(group_dir: str, step: Optional[int] = None):
+    """(config of its first seed, group states) of a seed group's latest (or given) checkpoint,
+    restored on this process's first device (as `dscpp_jax.seed_group.evaluate_group` takes)."""
+    import jax
+
+    from dscpp_jax import seed_group as SG
+    from dscpp_jax.run_logging import read_config
+    seeds = read_group(group_dir)["seeds"]
+    cfg = Config.from_dict(read_config(seed_dir(group_dir, seeds[0]))["config"])
+    like = SG.group_shapes(cfg, len(seeds))[2]
+    ck = SG.GroupCheckpointer(group_dir)
+    try:
+        return cfg, ck.restore(like, SG.seed_mesh(jax.local_devices()[:1]), step)
+    finally:
+        ck.close()
+
+
 def load_seed(run_dir: str, step: Optional[int] = None):
     """(config, state) of a seed directory of a group: the group checkpoint restored on this
     process's default device, seed taken out (an ordinary single-seed TrainState)."""

@@ -382,7 +382,7 @@ EVAL_KEY_BASE = 1_000_003   # as dscpp_jax.evaluate.evaluate's default key
 
 @functools.lru_cache(maxsize=None)
 def _eval_fn(mesh: Mesh, treedef, specs: tuple, num_episodes: int, with_starts: bool,
-             with_key: bool):
+             with_key: bool, explore: bool = False):
     from dscpp_jax.evaluate import _eval_impl
     in_specs = jax.tree_util.tree_unflatten(treedef, list(specs))
     axes = _vmap_axes(treedef, specs)
@@ -391,7 +391,8 @@ def _eval_fn(mesh: Mesh, treedef, specs: tuple, num_episodes: int, with_starts: 
         def one(state, k):
             if not with_key:    # evaluate()'s default: a key from the seed's own iteration
                 k = jax.random.fold_in(jax.random.PRNGKey(EVAL_KEY_BASE), state.counters.iteration)
-            return _eval_impl(state, k, num_episodes, starts if with_starts else None)
+            return _eval_impl(state, k, num_episodes, starts if with_starts else None,
+                              explore=explore)
         return jax.vmap(one, in_axes=(axes, None))(states, key)
 
     f = jax.shard_map(body, mesh=mesh, in_specs=(in_specs, P(), P()), out_specs=P(SEED_AXIS),
@@ -403,13 +404,14 @@ def _eval_fn(mesh: Mesh, treedef, specs: tuple, num_episodes: int, with_starts: 
 
 
 def evaluate_group(states: T.TrainState, key: Optional[jax.Array] = None,
-                   num_episodes: Optional[int] = None, starts=None, mesh: Optional[Mesh] = None):
+                   num_episodes: Optional[int] = None, starts=None, mesh: Optional[Mesh] = None,
+                   explore: bool = False):
     """Evaluate every seed of the group in one call (vmap of the evaluation over the seeds).
 
     Returns (one summary dict per seed, the EvalResult with a leading seed axis, on the host).
     Without `key`, seed i uses the key `dscpp_jax.evaluate` would use for it alone (from its
     iteration), so each seed's numbers are those of a separate evaluation; with `key`, every
-    seed uses that key."""
+    seed uses that key. `explore`: with training's action noise (`dscpp_jax.evaluate.evaluate`)."""
     from dscpp_jax.evaluate import summarize
     n = group_size(states)
     mesh = mesh_of(states) if mesh is None else mesh
@@ -424,7 +426,8 @@ def evaluate_group(states: T.TrainState, key: Optional[jax.Array] = None,
     k = np.asarray(jax.random.key_data(key) if key is not None and jax.dtypes.issubdtype(
         key.dtype, jax.dtypes.prng_key) else (key if key is not None else jax.random.PRNGKey(0)))
     s = np.zeros((1, 2), np.float32) if starts is None else starts
-    fn = _eval_fn(mesh, treedef, specs, num_episodes, starts is not None, key is not None)
+    fn = _eval_fn(mesh, treedef, specs, num_episodes, starts is not None, key is not None,
+                  bool(explore))
     res = to_host(fn(states, _global(np.asarray(k), rep), _global(s, rep)))
     return [summarize(index_tree(res, i)) for i in range(n)], res
 
@@ -501,6 +504,11 @@ class GroupCheckpointer:
         if step is None:
             from dscpp_jax.checkpoint import NONE_SAVED, NoCheckpointError
             raise NoCheckpointError(f"no checkpoint found under {self.directory}: {NONE_SAVED}")
+        have = sorted(int(x) for x in self.manager.all_steps())
+        if int(step) not in have:
+            from dscpp_jax.checkpoint import NoCheckpointError
+            raise NoCheckpointError(f"no checkpoint of step {step} under {self.directory}; it "
+                                    f"holds steps {have}")
         n = group_size(like)
         mesh = (mesh_of(like) if hasattr(like.counters.iteration, "sharding") else seed_mesh()) \
             if mesh is None else mesh

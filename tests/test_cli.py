@@ -89,6 +89,12 @@ def test_cli_train_resume_interrupt_eval_plot(tmp_path, monkeypatch, capsys):
     assert os.path.exists(os.path.join(run, "eval_trajectory.png"))
     assert main(["eval", "--run", run, "--starts", "8,8;0,4", "--no-plot"]) == 0
     assert len(json.load(open(os.path.join(run, "eval_starts.json")))["steps_per_start"]) == 2
+    # other kinds of evaluation never overwrite eval.json
+    assert main(["eval", "--run", run, "--episodes", "2", "--explore", "--no-plot"]) == 0
+    assert json.load(open(os.path.join(run, "eval_explore.json")))["explore"] is True
+    assert main(["eval", "--run", run, "--episodes", "2", "--step", "9", "--no-plot"]) == 0
+    assert json.load(open(os.path.join(run, "eval_step9.json")))["iteration"] == 9
+    assert json.load(open(os.path.join(run, "eval.json"))) == ev
 
     assert main(["plot", run]) == 0
     for f in ("curves.png", "trajectory.png", "classifiers.png"):

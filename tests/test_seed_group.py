@@ -149,6 +149,17 @@ def test_group_equals_separate_runs(ref, tmp_path):
     assert not os.path.exists(os.path.join(ref, "s0", "checkpoints"))   # one group checkpoint
 
 
+def test_group_evaluation_with_exploration_equals_each_seed():
+    from dscpp_jax.evaluate import evaluate
+    g = SG.init_group([3, 5], group_config())
+    summ, res = SG.evaluate_group(g, num_episodes=2, explore=True)
+    for i in (0, 1):
+        one, r = evaluate(SG.seed_state(g, i), num_episodes=2, explore=True)
+        np.testing.assert_allclose(np.asarray(res.xy[i]), np.asarray(r.xy), rtol=1e-4, atol=1e-5)
+        assert summ[i]["eval/success_rate"] == one["eval/success_rate"]
+    assert not np.allclose(np.asarray(res.xy), np.asarray(SG.evaluate_group(g, num_episodes=2)[1].xy))
+
+
 def test_kill_and_resume_equals_uninterrupted_and_seed_dirs_work(ref, cache, tmp_path, capsys):
     group = str(tmp_path / "killed")
     code = (
@@ -181,8 +192,23 @@ def test_kill_and_resume_equals_uninterrupted_and_seed_dirs_work(ref, cache, tmp
     assert main(["plot", os.path.join(group, "s0"), s1, "--out", out]) == 0
     for f in ("curves.png", "s0_trajectory.png", "s1_trajectory.png"):
         assert os.path.getsize(os.path.join(out, f)) > 1000
-    assert main(["eval", "--run", group]) == 2
-    assert "is a seed group; name one of its seeds" in capsys.readouterr().err
+    # the group directory: every seed in one call, each as its own seed directory's evaluation
+    s1_alone = json.load(open(os.path.join(s1, "eval.json")))
+    capsys.readouterr()
+    assert main(["eval", "--run", group, "--episodes", "2", "--no-plot"]) == 0
+    out = capsys.readouterr().out
+    assert "seed 0: success" in out and "seed 1: success" in out and "2 seeds: success" in out
+    together = json.load(open(os.path.join(s1, "eval.json")))
+    assert together["seed"] == 1 and together["iteration"] == 6
+    assert together["eval/success_rate"] == s1_alone["eval/success_rate"]
+    assert together["eval/steps_to_goal"] == pytest.approx(s1_alone["eval/steps_to_goal"],
+                                                           rel=1e-4, nan_ok=True)
+    assert main(["eval", "--run", group, "--episodes", "2", "--explore", "--step", "5",
+                 "--no-plot"]) == 0
+    ex = json.load(open(os.path.join(group, "s0", "eval_explore_step5.json")))
+    assert ex["explore"] is True and ex["iteration"] == 5
+    assert main(["eval", "--run", group, "--step", "1"]) == 2
+    assert "no checkpoint of step 1" in capsys.readouterr().err
 
 
 def test_a_diverged_seed_stops_the_group_and_is_named(ref, tmp_path, monkeypatch, capsys):

@@ -185,6 +185,12 @@ def test_evaluate_has_no_side_effects_and_takes_starts():
     a = dscpp_jax.evaluate(s, jax.random.PRNGKey(5), 3)[1]
     b = dscpp_jax.evaluate(s, jax.random.PRNGKey(5), 3)[1]
     np.testing.assert_array_equal(np.asarray(a.xy), np.asarray(b.xy))
+    # with training's action noise: still read-only and repeatable, but other motions
+    e1 = dscpp_jax.evaluate(s, jax.random.PRNGKey(5), 3, explore=True)[1]
+    assert_trees_equal(before, s)
+    e2 = dscpp_jax.evaluate(s, jax.random.PRNGKey(5), 3, explore=True)[1]
+    np.testing.assert_array_equal(np.asarray(e1.xy), np.asarray(e2.xy))
+    assert not np.allclose(np.asarray(e1.xy[1:]), np.asarray(a.xy[1:]))
 
 
 def test_make_policy_runs_in_a_jitted_scan():
