@@ -17,8 +17,15 @@ already writes (``docs/training.md``; the medium maze in ``experiments/results/p
 - ``broke late`` (before any of the above): the in-band evaluation's last window
   (``inband/success_rate``, episodes that began in about the last 20-40 iterations) was at or
   above ``SOLVED`` and the final evaluation is below it by more than ``LATE_DROP`` (over three
-  standard errors of a 32- against a 100-episode estimate near 0.9): a chain that worked broke in
-  the last iterations, typically when a refit moved one link's region.
+  standard errors of a 32- against a 100-episode estimate near 0.9): a chain that worked scored
+  lower at the end. The in-band window lags the policy (a failed episode takes the full episode
+  length to finish, about 20 iterations on the ant) and smooths it, so it misses short dips;
+  periodic evaluations (``eval_every``) of the ant's medium maze show chains whose newest link,
+  at the start, fails for 10-20 iterations and recovers.
+
+With periodic evaluations in ``metrics.csv`` the reading also counts how many of them, once one
+had reached ``SOLVED``, fell below ``DIP`` (column "dips once solved"): a chain that dips is one
+whose final evaluation is partly luck.
 
 Only the lean files are read (no checkpoint), so it works on results copied off a GPU host.
 ``python -m dscpp_jax.cli diagnose RUN_OR_GROUP_DIR ...`` prints one row per seed.
@@ -37,9 +44,10 @@ WEAK_LINK = 0.2           # an option that succeeds in fewer of its evaluation e
 STALLED_LINK_EXECUTIONS = 1000
 LATE_DROP = 0.2           # broke late: the final evaluation this far below the in-band window
 FALLS_SHARE = 0.5         # falls: at least this share of the failed evaluation episodes
+DIP = 0.5                 # a periodic evaluation below this, after one reached SOLVED, is a dip
 
-COLUMNS = ("run", "success", "in-band at the end", "start covered", "options", "falls",
-           "weak links", "verdict")
+COLUMNS = ("run", "success", "in-band at the end", "dips once solved", "start covered",
+           "options", "falls", "weak links", "verdict")
 
 
 def link_stalled(metrics: dict) -> bool:
@@ -58,6 +66,25 @@ def _last_row(path: str) -> dict:
     if last is None:
         raise ValueError(f"{path} has no rows: the run has not finished an iteration")
     return last
+
+
+def dips(path: str) -> Optional[tuple]:
+    """(dips, evaluations) of a ``metrics.csv``'s periodic evaluations from the first that
+    reached ``SOLVED`` on: how many of those (the first included) fell below ``DIP``. (0, 0) when
+    none reached ``SOLVED``; None when the run logged fewer than two periodic evaluations."""
+    vals = []
+    with open(path, newline="") as f:
+        for row in csv.DictReader(f):
+            v = _num(row, "eval/success_rate")
+            if math.isfinite(v):
+                vals.append(v)
+    if len(vals) < 2:
+        return None
+    first = next((i for i, v in enumerate(vals) if v >= SOLVED), None)
+    if first is None:
+        return (0, 0)
+    after = vals[first:]
+    return (sum(v < DIP for v in after), len(after))
 
 
 def _num(d: dict, key: str, default: float = math.nan) -> float:
@@ -119,7 +146,8 @@ def diagnose_run(run_dir: str) -> dict:
     if (success < SOLVED and math.isfinite(inband) and inband >= SOLVED
             and success < inband - LATE_DROP):
         verdict = f"broke late ({verdict})"
-    return {"run": run_dir, "success": success, "inband": inband, "start_covered": covered,
+    return {"run": run_dir, "success": success, "inband": inband,
+            "dips": dips(paths["metrics.csv"]), "start_covered": covered,
             "options": int(_num(last, "options/num_options", 0.0)), "table_full": full,
             "falls": falls, "failures": failures, "weak_links": weak, "stalled_link": stalled,
             "verdict": verdict}
@@ -146,7 +174,9 @@ def format_table(rows: Sequence[dict], root: Optional[str] = None) -> str:
                  f"{int(r['falls'])} of {int(r['failures'])}" if math.isfinite(r["failures"])
                  else f"{int(r['falls'])}")
         inband = r.get("inband", math.nan)
+        dip = r.get("dips")
         cells = [run, f"{r['success']:.2f}", f"{inband:.2f}" if math.isfinite(inband) else "-",
+                 "-" if not dip or not dip[1] else f"{dip[0]} of {dip[1]}",
                  "yes" if r["start_covered"] else "no",
                  f"{r['options']}" + (" (full)" if r["table_full"] else ""), falls,
                  ", ".join(map(str, r["weak_links"])) or "-", r["verdict"]]

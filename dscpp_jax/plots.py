@@ -291,6 +291,53 @@ def plot_curves(run_dirs: Sequence[str], path: str, group: bool = True) -> str:
     return path
 
 
+def plot_seeds(run_dirs: Sequence[str], path: str, cols: int = 5) -> str:
+    """One small panel per run (e.g. each seed of a group): evaluation success from the start
+    (periodic evaluations, markers; the final evaluation of eval.json, a star) and in-band
+    success (dashed) vs training episodes. The mean curves of `plot_curves` hide what a single
+    seed does: whether its chain held once it worked, or dipped and recovered."""
+    import json
+    plt = _plt()
+    runs = [_split_label(r) for r in run_dirs]
+    n = len(runs)
+    cols = max(1, min(cols, n))
+    rows = (n + cols - 1) // cols
+    fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 2.4 * rows), squeeze=False,
+                             sharex=True, sharey=True)
+    for ax, (label, run) in zip(axes.flat, runs):
+        name = label or os.path.basename(os.path.normpath(run))
+        ev = _curve(run, "eval/success_rate", "episodes")
+        ib = _curve(run, "inband/success_rate", "episodes")
+        if ib is not None:
+            ax.plot(ib[0], ib[1], "--", color="C1", lw=1, label="in-band")
+        if ev is not None:
+            ax.plot(ev[0], ev[1], "-o", color="C0", ms=2.5, lw=1, label="evaluation")
+        final = ""
+        try:
+            with open(os.path.join(run, "eval.json")) as f:
+                e = json.load(f)
+            if "episodes_trained" in e:
+                ax.plot([e["episodes_trained"]], [e["eval/success_rate"]], "*", color="C3",
+                        ms=9, label="final evaluation")
+            final = f", final {e['eval/success_rate']:.2f}"
+        except (OSError, ValueError, KeyError):
+            pass
+        ax.set_title(f"{name}{final}", fontsize=9)
+        ax.set_ylim(-0.05, 1.05)
+        ax.grid(alpha=0.3)
+    for ax in list(axes.flat)[n:]:
+        ax.axis("off")
+    for ax in axes[-1]:
+        ax.set_xlabel("training episodes")
+    for ax in axes[:, 0]:
+        ax.set_ylabel("success from the start")
+    handles, names = axes.flat[0].get_legend_handles_labels()
+    if handles:
+        fig.legend(handles, names, loc="lower center", ncol=len(names), fontsize=9, frameon=False)
+    _save(fig, path, rect=(0, 0.06 if rows > 1 else 0.12, 1, 1) if handles else None)
+    return path
+
+
 def expand_groups(entries: Sequence[str]) -> list[str]:
     """Each seed-group directory among `entries` ("LABEL=DIR" too) replaced by its seeds'
     directories, in the group's seed order; run directories stay as they are."""
@@ -308,13 +355,15 @@ def expand_groups(entries: Sequence[str]) -> list[str]:
 
 def plot_runs(run_dirs: Sequence[str], out_dir: str, with_state: bool = True,
               trajectory: bool = True) -> list[str]:
-    """All plots for the given runs (a seed group's directory stands for its seeds): curves;
-    with ``with_state`` also each run's classifiers and (``trajectory``: after evaluation
+    """All plots for the given runs (a seed group's directory stands for its seeds): curves (and
+    for several runs one panel per run, seeds.png); with ``with_state`` also each run's classifiers and (``trajectory``: after evaluation
     episodes from its checkpoint) trajectories. A run without a checkpoint (a results copy)
     gets its curves and a line on stderr saying why nothing else."""
     run_dirs = expand_groups(run_dirs)
     os.makedirs(out_dir, exist_ok=True)
     paths = [plot_curves(run_dirs, os.path.join(out_dir, "curves.png"))]
+    if len(run_dirs) > 1:   # one panel per run as well
+        paths.append(plot_seeds(run_dirs, os.path.join(out_dir, "seeds.png")))
     if with_state:
         import jax
 

@@ -102,6 +102,7 @@ def test_cli_train_resume_interrupt_eval_plot(tmp_path, monkeypatch, capsys):
     out = str(tmp_path / "cmp")
     assert main(["plot", run, run, "--out", out, "--curves-only"]) == 0
     assert os.path.exists(os.path.join(out, "curves.png"))
+    assert os.path.getsize(os.path.join(out, "seeds.png")) > 1000   # one panel per run
     regions = str(tmp_path / "regions")
     assert main(["plot", run, "--out", regions, "--regions-only"]) == 0
     assert sorted(os.listdir(regions)) == ["classifiers.png", "curves.png"]

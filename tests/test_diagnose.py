@@ -61,9 +61,9 @@ def test_each_failure_gets_its_verdict(tmp_path):
     assert falls["falls"] == 30 and falls["failures"] == 40 and falls["start_covered"]
     assert D.diagnose_run(str(tmp_path / "weak"))["weak_links"] == [7]   # not the global option
     table = D.format_table([D.diagnose_run(str(tmp_path / n)) for n in cases], str(tmp_path))
-    assert "| full | 0.00 | - | no | 24 (full) | 0 of 100 | - | table full |" in table
-    assert "| falls | 0.60 | - | yes | 10 | 30 of 40 | - | falls |" in table
-    assert "| late | 0.00 | 0.97 | yes | 10 | 0 of 100 | 23 | broke late (weak link 23) |" in table
+    assert "| full | 0.00 | - | - | no | 24 (full) | 0 of 100 | - | table full |" in table
+    assert "| falls | 0.60 | - | - | yes | 10 | 30 of 40 | - | falls |" in table
+    assert "| late | 0.00 | 0.97 | - | yes | 10 | 0 of 100 | 23 | broke late (weak link 23) |" in table
     # the summary counts kinds, details left out: "weak link 7" and "weak link 23" are one kind
     assert D.verdict_kind("stalled link (targets option 15, 1200 executions)") == "stalled link"
     assert D.verdict_kind("falls; weak links 3, 4") == "falls; weak link"
@@ -71,6 +71,25 @@ def test_each_failure_gets_its_verdict(tmp_path):
     assert summary == ("10 runs: falls 2, solved 2, broke late 1, not covered 1, "
                        "stalled link 1, start covered, failing on the way 1, table full 1, "
                        "weak link 1")
+
+
+def test_dips_count_periodic_evaluations_below_half_once_solved(tmp_path):
+    d = _run(tmp_path, "dipping", {"options/start_covered": 1}, {"eval/success_rate": 0.9})
+    rows = [0.0, "", 0.0, 0.86, 0.69, "", 0.0, 0.28, 0.93, 0.41, 0.9]
+    with open(f"{d}/metrics.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["iteration", "eval/success_rate", "options/start_covered"])
+        for i, v in enumerate(rows):
+            w.writerow([i + 1, v, 1])
+    assert D.dips(f"{d}/metrics.csv") == (3, 7)   # 0.0, 0.28, 0.41 of the seven from 0.86 on
+    r = D.diagnose_run(d)
+    assert r["dips"] == (3, 7) and r["verdict"] == "solved"
+    assert "| dipping | 0.90 | - | 3 of 7 | yes |" in D.format_table([r], str(tmp_path))
+    never = _run(tmp_path, "never", {}, {"eval/success_rate": 0.0})
+    with open(f"{never}/metrics.csv", "w") as f:
+        f.write("iteration,eval/success_rate,options/start_covered\n1,0.0,0\n2,0.5,0\n")
+    assert D.dips(f"{never}/metrics.csv") == (0, 0)
+    assert "| never | 0.00 | - | - | no |" in D.format_table([D.diagnose_run(never)], str(tmp_path))
 
 
 def test_diagnose_takes_groups_and_says_what_is_missing(tmp_path, capsys):
