@@ -189,7 +189,7 @@ def test_plot_of_a_results_group_draws_its_seeds_curves(tmp_path, capsys):
     assert main(["plot", group, "--out", out]) == 0
     captured = capsys.readouterr()
     assert os.path.getsize(os.path.join(out, "curves.png")) > 1000
-    assert sorted(os.listdir(out)) == ["curves.png"]
+    assert sorted(os.listdir(out)) == ["curves.png", "seeds.png"]   # and one panel per seed
     notes = [l for l in captured.err.splitlines() if "no checkpoint, so only its curves" in l]
     assert [l.split(":")[0] for l in notes] == [os.path.join(group, f"s{s}") for s in range(5)]
 
