@@ -30,7 +30,7 @@ MODEL_BASED_ALGOS = ("mb_dscpp", "mb_flat", "mb_flat_value")
 RETIRED_FIELDS: dict[str, Any] = dict(
     td3_upright_weight=0.0, td3_upright_min=0.5, td3_absorb_fallen=False,
     mpc_upright_weight=0.0, mpc_upright_min=0.5, gestation_patience=0,
-    frontier_metric="euclidean", frontier_stall=0)
+    frontier_metric="euclidean", frontier_stall=0, svc_bound=0.0)
 # Fields only the host driver reads (the TrainState carries `Config.device_view()`).
 HOST_ONLY_DEFAULTS = dict(seed=0, total_env_steps=1, total_episodes=0, eval_every=0,
                           log_every=1, checkpoint_every=0, keep_checkpoints=1, preset="paper")
@@ -71,12 +71,6 @@ class Config:
     max_pos_traj: int = 100
     max_neg: int = 100
     svm_gamma: float = 0.5
-    svc_bound: float = 0.0             # beyond the paper (0: off, the paper's SVC): the initiation
-                                       # SVC's intercept counts at most -svc_bound, so a state is
-                                       # inside only where its examples' kernel sum reaches
-                                       # svc_bound and none far from every example is (an SVC
-                                       # whose intercept turns positive otherwise holds the whole
-                                       # plane but its failures: options/unbounded_regions)
     diverse_starts: bool = True        # training episodes after warm-up start anywhere free
     task_start_prob: float = 0.0       # with diverse starts: the share of training episodes after
                                        # warm-up that start at the task start instead
@@ -339,8 +333,6 @@ class Config:
                  f"model_capacity={self.model_capacity} too small for num_envs={self.num_envs} and "
                  f"steps_per_iter={self.steps_per_iter}; raise it to at least "
                  f"{self.num_envs * max(2, self.steps_per_iter)}")
-        need(self.svc_bound >= 0.0, f"svc_bound={self.svc_bound} must be >= 0 (0: the paper's SVC, "
-             f"e.g. 0.05 bounds each initiation region to about 2.5 units from its examples)")
         need(self.inband_eval_envs >= 0,
              f"inband_eval_envs={self.inband_eval_envs} must be >= 0 (0: no in-band evaluation; "
              f"e.g. 16 runs 16 evaluation episodes from the task start inside each train_step)")

@@ -65,13 +65,6 @@ class InitiationConfig:
     pessimistic_examples: what the dual variant's pessimistic model is fit on: "positives" (the
     positives the SVC calls positive, the paper) or "all" (every training point the SVC calls
     positive, negatives included, as the authors' code did).
-    svc_bound: beyond the paper (0: off). The SVC's value far from all its examples is minus its
-    intercept ρ; when failures start among successes the fit can make ρ negative, and the region
-    then holds the whole plane but the failures' neighbourhood. With svc_bound > 0 the SVC's ρ is
-    raised to at least svc_bound (f(x) = Σ coef K − max(ρ, svc_bound)): a fit with a larger ρ is
-    unchanged, any other holds only states where its examples' kernel sum reaches svc_bound
-    (about sqrt(ln(α / svc_bound) / γ) from a support vector of weight α). The pessimistic model
-    is then fit on the positives the bounded SVC calls positive.
     """
 
     variant: str = "dual"
@@ -84,7 +77,6 @@ class InitiationConfig:
     tol: float = 1e-3
     max_iter: int | None = None
     pessimistic_examples: str = "positives"
-    svc_bound: float = 0.0
 
     def __post_init__(self):
         if self.variant not in VARIANTS:
@@ -103,8 +95,6 @@ class InitiationConfig:
             raise ValueError(f"max_iter must be a positive int or None, got {self.max_iter!r}")
         if self.pessimistic_examples not in ("positives", "all"):
             raise ValueError(f"pessimistic_examples must be 'positives' or 'all', got {self.pessimistic_examples!r}")
-        if not self.svc_bound >= 0:
-            raise ValueError(f"svc_bound must be >= 0, got {self.svc_bound}")
         if self.balanced_min_negatives < 0:
             raise ValueError("balanced_min_negatives must be >= 0")
 
@@ -193,10 +183,6 @@ def _fit(pos_xy, pos_mask, neg_xy, neg_mask, prev: InitiationClassifiers, cfg: I
     problem = tuple(jnp.where(two_class, a, b) for a, b in zip(svc, occ))
     first_mask = jnp.where(two_class, all_slots, pos_slots)
     first, f_train = svm._fit_problem(X, first_mask, problem, ~two_class, gamma, tol, max_iter, inner)
-    if cfg.svc_bound > 0:   # the SVC's intercept alone never holds a state (one-class fits keep ρ)
-        rho = jnp.where(two_class, jnp.maximum(first.rho, jnp.float32(cfg.svc_bound)), first.rho)
-        f_train = f_train + first.rho - rho
-        first = first.replace(rho=rho)
     opt = _select(has_pos, first, prev.optimistic)
     opt_fitted = has_pos | prev.optimistic_fitted
 

@@ -82,7 +82,6 @@ class ChainConfig:
     balanced_min_neg: int = 10   # class_weight "balanced" from this many negatives on
     svm_tol: float = 1e-3
     svm_max_iter: Optional[int] = None
-    svc_bound: float = 0.0       # the SVC's intercept counts at most -svc_bound (0: off, the paper)
     svm_backend: str = "auto"    # "auto" (fused SMO kernel on GPUs, XLA loop elsewhere) | "xla" | "pallas"
 
     def __post_init__(self):
@@ -162,8 +161,7 @@ def initiation_config(cfg: ChainConfig):
     return _initiation().InitiationConfig(
         variant=cfg.variant, gamma=cfg.svm_gamma, C=cfg.svm_C, nu_pessimistic=cfg.nu_pessimistic,
         nu_optimistic=cfg.nu_optimistic, nu_single=cfg.nu_pessimistic,
-        balanced_min_negatives=cfg.balanced_min_neg, tol=cfg.svm_tol, max_iter=cfg.svm_max_iter,
-        svc_bound=cfg.svc_bound)
+        balanced_min_negatives=cfg.balanced_min_neg, tol=cfg.svm_tol, max_iter=cfg.svm_max_iter)
 
 
 def _empty_classifiers(cfg: ChainConfig):

@@ -870,8 +870,7 @@ def chain_config(config: Config):
                        max_pos_traj=config.max_pos_traj, max_neg=config.max_neg,
                        variant=config.classifier_variant, goal_tolerance=config.goal_tolerance,
                        subgoal_tolerance=config.goal_tolerance, obs_dim=_obs_dim(config),
-                       svm_gamma=config.svm_gamma, svc_bound=config.svc_bound,
-                       svm_backend=config.svm_backend)
+                       svm_gamma=config.svm_gamma, svm_backend=config.svm_backend)
 
 
 def _chain_init(config: Config, goal):

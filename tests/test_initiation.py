@@ -172,50 +172,6 @@ def test_no_retrace_across_example_counts():
     assert len(traces) == 1
 
 
-def test_svc_bound_keeps_the_region_near_its_examples():
-    """Failures in the middle of the successes: scikit-learn's SVC ends with a positive intercept,
-    so far from every example it says 'inside' (an unbounded region). svc_bound raises ρ to at
-    least the bound: the far plane leaves the region, the fit is otherwise the same, and a fit
-    whose ρ is already above the bound does not change."""
-    rng = np.random.default_rng(0)
-    pos = rng.normal(0.0, 1.5, (60, 2)).astype(np.float32)
-    neg = rng.normal(0.0, 0.3, (12, 2)).astype(np.float32)
-    far = np.array([[40.0, 40.0], [-30.0, 5.0]], np.float32)
-    assert (sk_svc(pos, neg).decision_function(far) > 0).all()    # the paper's SVC: unbounded
-    paper = ini.fit_initiation(*padded(pos, neg), CFG)
-    assert np.asarray(ini.optimistic_contains(paper, far)).all() and float(paper.optimistic.rho) < 0
-    bound = 0.05
-    clf = ini.fit_initiation(*padded(pos, neg), ini.InitiationConfig(svc_bound=bound))
-    assert not np.asarray(ini.optimistic_contains(clf, far)).any()
-    np.testing.assert_array_equal(np.asarray(clf.optimistic.coef), np.asarray(paper.optimistic.coef))
-    assert float(clf.optimistic.rho) == pytest.approx(bound)
-    g = grid(pos, neg)
-    kernel_sum = np.asarray(svm.decision_function(paper.optimistic, g)) + float(paper.optimistic.rho)
-    inside = np.asarray(ini.optimistic_contains(clf, g))
-    sure = np.abs(kernel_sum - bound) > 1e-4
-    np.testing.assert_array_equal(inside[sure], (kernel_sum >= bound)[sure])
-    assert inside.any() and np.asarray(ini.pessimistic_contains(clf, pos)).any()
-    # a fit with many failures around its successes keeps its own, larger intercept
-    pos2, neg2 = dsc_like(3, 4, 30)
-    a = ini.fit_initiation(*padded(pos2, neg2), CFG)
-    b = ini.fit_initiation(*padded(pos2, neg2), ini.InitiationConfig(svc_bound=bound))
-    assert float(a.optimistic.rho) > bound
-    for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
-        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
-    with pytest.raises(ValueError, match="svc_bound"):
-        ini.InitiationConfig(svc_bound=-0.1)
-
-
-def test_svc_bound_reaches_the_chain_from_the_config():
-    from dscpp_jax import options, trainer
-    from dscpp_jax.config import preset
-    cfg = preset("fast", "point_u_maze", "mb_dscpp", svc_bound=0.05)
-    assert options.initiation_config(trainer.chain_config(cfg)).svc_bound == 0.05
-    assert options.initiation_config(trainer.chain_config(cfg.override(svc_bound=0.0))).svc_bound == 0
-    with pytest.raises(ValueError, match="svc_bound=-1"):
-        cfg.override(svc_bound=-1.0).validate()
-
-
 def test_bad_config_and_shapes_raise():
     with pytest.raises(ValueError, match="variant"):
         ini.InitiationConfig(variant="triple")
