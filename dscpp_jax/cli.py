@@ -496,7 +496,6 @@ def parse_starts(text: Optional[str]):
 
 def cmd_eval(args) -> int:
     import jax
-    import numpy as np
 
     from dscpp_jax.evaluate import evaluate
     starts = parse_starts(args.starts)   # a typo here fails before anything loads
@@ -506,17 +505,7 @@ def cmd_eval(args) -> int:
     cfg, state = load_run(args.run, args.step)
     key = jax.random.PRNGKey(args.seed)
     summary, res = evaluate(state, key, args.episodes, starts, explore=args.explore)
-    summary["iteration"] = int(state.counters.iteration)
-    summary["env_steps"] = int(state.counters.env_steps)
-    summary["episodes_trained"] = int(state.counters.episodes)
-    if starts is not None:
-        summary["starts"] = starts
-        summary["steps_per_start"] = np.asarray(res.steps).tolist()
-        summary["success_per_start"] = np.asarray(res.success).astype(int).tolist()
-    # eval.json is the deterministic evaluation of the latest checkpoint; other kinds get names
-    # of their own, so that they never overwrite it
-    if args.explore:
-        summary["explore"] = True
+    summary = _eval_record(summary, state.counters, res, starts, args.explore)
     name = _eval_name(args, starts)
     out_json = os.path.join(args.run, f"{name}.json")
     try:
@@ -536,6 +525,21 @@ def cmd_eval(args) -> int:
             raise _write_error(args.run, e, f"write {name}_trajectory.png") from None
         print(f"wrote {out_json} and {path}")
     return 0
+
+
+def _eval_record(summary: dict, counters, res, starts, explore: bool) -> dict:
+    """An evaluation's JSON record: the summary, where the run stood (`counters` of one seed),
+    per-start outcomes with `starts`, and whether it acted with exploration noise."""
+    import numpy as np
+    out = dict(summary, iteration=int(counters.iteration), env_steps=int(counters.env_steps),
+               episodes_trained=int(counters.episodes))
+    if starts is not None:
+        out["starts"] = starts
+        out["steps_per_start"] = np.asarray(res.steps).tolist()
+        out["success_per_start"] = np.asarray(res.success).astype(int).tolist()
+    if explore:
+        out["explore"] = True
+    return out
 
 
 def _eval_name(args, starts) -> str:
@@ -558,19 +562,14 @@ def _eval_group(args, starts) -> int:
     cfg, states = group_train.load_group(args.run, args.step)
     summ, res = SG.evaluate_group(states, jax.random.PRNGKey(args.seed), args.episodes, starts,
                                   explore=args.explore)
-    c = SG.to_host(states.counters)
+    counters = SG.to_host(states.counters)
     name = _eval_name(args, starts)
     rates = []
     for i, seed in enumerate(seeds):
-        summary = dict(summ[i], iteration=int(c.iteration[i]), env_steps=int(c.env_steps[i]),
-                       episodes_trained=int(c.episodes[i]), seed=int(seed))
-        if args.explore:
-            summary["explore"] = True
         one = SG.index_tree(res, i, len(seeds))
-        if starts is not None:
-            summary["starts"] = starts
-            summary["steps_per_start"] = np.asarray(one.steps).tolist()
-            summary["success_per_start"] = np.asarray(one.success).astype(int).tolist()
+        summary = _eval_record(summ[i], SG.index_tree(counters, i, len(seeds)), one, starts,
+                               args.explore)
+        summary["seed"] = int(seed)
         d = group_train.seed_dir(args.run, seed)
         try:
             with open(os.path.join(d, f"{name}.json"), "w") as f:

@@ -97,7 +97,7 @@ def load_group(group_dir: str, step: Optional[int] = None):
     from dscpp_jax.run_logging import read_config
     seeds = read_group(group_dir)["seeds"]
     cfg = Config.from_dict(read_config(seed_dir(group_dir, seeds[0]))["config"])
-    like = SG.group_shapes(cfg, len(seeds))[2]
+    like = SG.group_shapes(cfg, len(seeds))[2]   # as the group was trained (Warp's shared buffers too)
     ck = SG.GroupCheckpointer(group_dir)
     try:
         return cfg, ck.restore(like, SG.seed_mesh(jax.local_devices()[:1]), step)
@@ -118,14 +118,8 @@ def load_seed(run_dir: str, step: Optional[int] = None):
         raise ValueError(f"{run_dir} is not a seed directory of a group")
     group_dir, index = found
     cfg = Config.from_dict(read_config(run_dir)["config"])
-    n = len(read_group(group_dir)["seeds"])
-    like = SG.group_shapes(cfg, n)[2]   # as the group was trained (Warp's shared buffers too)
-    ck = SG.GroupCheckpointer(group_dir)
-    try:
-        states = ck.restore(like, SG.seed_mesh(jax.local_devices()[:1]), step)
-    finally:
-        ck.close()
-    host = SG.index_tree(jax.device_get(states), index, n)
+    _, states = load_group(group_dir, step)
+    host = SG.index_tree(jax.device_get(states), index, SG.group_size(states))
     return cfg, jax.tree_util.tree_map(jnp.asarray, host)
 
 
