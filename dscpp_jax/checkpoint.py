@@ -12,6 +12,7 @@ the newest one that restores, with a warning on stderr naming both steps.
 from __future__ import annotations
 
 import dataclasses
+import logging
 import os
 import shutil
 import sys
@@ -24,6 +25,23 @@ import numpy as np
 import orbax.checkpoint as ocp
 
 CKPT_DIR = "checkpoints"
+
+
+class _NoFalseWaitWarning(logging.Filter):
+    """Drops orbax's "Waiting for previous save to complete took N seconds" warning. Every save
+    here waits for its own write to finish (`wait_until_finished`), and orbax counts that wait
+    against the next save, so the warning fires at every checkpoint of a large state without
+    anything having waited for a previous save."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not str(record.msg).startswith("Waiting for previous save to complete")
+
+
+def quiet_orbax() -> None:
+    """Install the filter on absl's logger (orbax logs through absl) once per process."""
+    logger = logging.getLogger("absl")
+    if not any(isinstance(f, _NoFalseWaitWarning) for f in logger.filters):
+        logger.addFilter(_NoFalseWaitWarning())
 
 
 def _is_typed_key(x: Any) -> bool:
@@ -120,6 +138,7 @@ class Checkpointer:
         self.keep = max(1, int(keep))
         self.verify = verify
         # max_to_keep=None: orbax deletes nothing; `_prune` does, once the new step reads back
+        quiet_orbax()
         opts = ocp.CheckpointManagerOptions(max_to_keep=None, create=True)
         self.manager = ocp.CheckpointManager(self.directory, options=opts)
 

@@ -480,7 +480,8 @@ class GroupCheckpointer:
 
     def __init__(self, group_dir: str, keep: int = 2):
         import orbax.checkpoint as ocp
-        from dscpp_jax.checkpoint import CKPT_DIR
+        from dscpp_jax.checkpoint import CKPT_DIR, quiet_orbax
+        quiet_orbax()
         self._ocp = ocp
         self.directory = os.path.abspath(os.path.join(group_dir, CKPT_DIR))
         opts = ocp.CheckpointManagerOptions(max_to_keep=max(1, keep), create=True)

@@ -23,6 +23,17 @@ def test_roundtrip_with_typed_keys(tmp_path):
         ck.restore_state(str(tmp_path / "missing"), tree)
 
 
+def test_orbax_false_wait_warning_is_dropped_and_others_kept(tmp_path, caplog):
+    from absl import logging as absl_logging
+    ck.Checkpointer(str(tmp_path))         # installs the filter (once, however often)
+    ck.quiet_orbax()
+    caplog.set_level("WARNING")
+    absl_logging.warning("Waiting for previous save to complete took %f seconds. If this"
+                         " number is high, consider checkpointing less frequently.", 6.5)
+    absl_logging.warning("something else from orbax")
+    assert [r.getMessage() for r in caplog.records] == ["something else from orbax"]
+
+
 @pytest.mark.parametrize("algo", ["mb_dscpp", "mf_dscpp"])
 def test_resume_equivalence(tmp_path, algo):
     cfg = tiny(algo)
