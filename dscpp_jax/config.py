@@ -86,6 +86,9 @@ class Config:
     frontier_radius: float = 5.0
     frontier_inner_radius: float = 0.0  # frontier starts keep at least this far from the target's
                                        # examples (longer links; 0: anywhere on the frontier)
+    frontier_anchor: float = 0.0       # once the link in gestation has succeeded, its frontier
+                                       # starts stay within this of its first success's start
+                                       # (one side of a target at a junction; 0: off)
     frontier_candidates: int = 512
     frontier_min_open: int = 4
     eval_prefer_pessimistic: bool = True  # evaluation's policy over options tries pessimistic
@@ -358,6 +361,11 @@ class Config:
         need(0 <= self.frontier_inner_radius < self.frontier_radius,
              f"frontier_inner_radius={self.frontier_inner_radius} and frontier_radius="
              f"{self.frontier_radius}: need 0 <= frontier_inner_radius < frontier_radius")
+        need(float(self.frontier_anchor) >= 0
+             and (self.frontier_anchor == 0 or self.frontier_start_prob > 0),
+             f"frontier_anchor={self.frontier_anchor} must be >= 0, and it keeps frontier starts "
+             f"near a link's first success, so it needs frontier_start_prob > 0 "
+             f"(got {self.frontier_start_prob})")
         need(self.frontier_candidates >= 1 and self.frontier_min_open >= 1,
              f"frontier_candidates={self.frontier_candidates} and frontier_min_open="
              f"{self.frontier_min_open} must be >= 1")

@@ -564,6 +564,8 @@ def _rollout(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[s
         "train/warmup": warmup.astype(jnp.float32),
         "train/random_action_prob": rand_prob,
     }
+    if front is not None:
+        metrics["frontier/pool"] = jnp.sum(front[1]).astype(jnp.float32)
     if inband is not None:
         metrics.update(inband_metrics(config, inband))
     return state, metrics
@@ -970,7 +972,8 @@ def _frontier_pool(config: Config, env, chain, key):
     from dscpp_jax import frontier
     cand = _frontier_candidates(config, env, key)
     return cand, frontier.start_pool(chain, frontier.frontier_probe(
-        chain, cand, config.frontier_radius, config.frontier_inner_radius))
+        chain, cand, config.frontier_radius, config.frontier_inner_radius), cand,
+        config.frontier_anchor)
 
 
 def _dp_value_table(config: Config, chain, td3):
