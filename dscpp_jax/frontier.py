@@ -96,7 +96,10 @@ def start_pool(chain: Chain, probe: jax.Array, cand_xy=None, anchor: float = 0.0
     first = chain.pos_xy[gc, 0, 0]
     has = chain.pos_mask[gc, 0, 0] & (chain.pos_count[gc] >= 1)
     near = jnp.sum((cand - first) ** 2, axis=-1) <= float(anchor) ** 2
-    return pool & (near | ~has)
+    anchored = pool & (near | ~has)
+    # a first success from outside the frontier (a diverse or task start) would empty the pool
+    # and with it the frontier starts: keep the whole pool then
+    return jnp.where(anchored.any(), anchored, pool)
 
 
 def frontier_parent(chain: Chain, is_open: jax.Array) -> jax.Array:

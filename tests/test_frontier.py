@@ -83,6 +83,9 @@ def test_an_anchored_pool_keeps_near_the_links_first_success(two_links):
         got = np.asarray(F.start_pool(ch, probe, cand, anchor))
         np.testing.assert_array_equal(got, plain & (d <= anchor))
         assert 0 < got.sum() < plain.sum()
+    # an anchor far from the pool would empty it: the whole pool stays
+    far = ch.replace(pos_xy=ch.pos_xy.at[3, 0, 0].set(jnp.array([50.0, 50.0])))
+    np.testing.assert_array_equal(np.asarray(F.start_pool(far, probe, cand, 2.5)), plain)
     # off: the plain pool
     np.testing.assert_array_equal(np.asarray(F.start_pool(ch, probe, cand, 0.0)), plain)
     # a link without a success yet (re-targeted: its examples cleared) draws from the whole pool
