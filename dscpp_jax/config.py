@@ -30,7 +30,7 @@ MODEL_BASED_ALGOS = ("mb_dscpp", "mb_flat", "mb_flat_value")
 RETIRED_FIELDS: dict[str, Any] = dict(
     td3_upright_weight=0.0, td3_upright_min=0.5, td3_absorb_fallen=False,
     mpc_upright_weight=0.0, mpc_upright_min=0.5, gestation_patience=0,
-    frontier_metric="euclidean", frontier_stall=0, svc_bound=0.0)
+    frontier_metric="euclidean", frontier_stall=0, svc_bound=0.0, frontier_anchor=0.0)
 # Fields only the host driver reads (the TrainState carries `Config.device_view()`).
 HOST_ONLY_DEFAULTS = dict(seed=0, total_env_steps=1, total_episodes=0, eval_every=0,
                           log_every=1, checkpoint_every=0, keep_checkpoints=1, preset="paper")
@@ -86,9 +86,6 @@ class Config:
     frontier_radius: float = 5.0
     frontier_inner_radius: float = 0.0  # frontier starts keep at least this far from the target's
                                        # examples (longer links; 0: anywhere on the frontier)
-    frontier_anchor: float = 0.0       # once the link in gestation has succeeded, its frontier
-                                       # starts stay within this of its first success's start
-                                       # (one side of a target at a junction; 0: off)
     frontier_candidates: int = 512
     frontier_min_open: int = 4
     eval_prefer_pessimistic: bool = True  # evaluation's policy over options tries pessimistic
@@ -361,11 +358,6 @@ class Config:
         need(0 <= self.frontier_inner_radius < self.frontier_radius,
              f"frontier_inner_radius={self.frontier_inner_radius} and frontier_radius="
              f"{self.frontier_radius}: need 0 <= frontier_inner_radius < frontier_radius")
-        need(float(self.frontier_anchor) >= 0
-             and (self.frontier_anchor == 0 or self.frontier_start_prob > 0),
-             f"frontier_anchor={self.frontier_anchor} must be >= 0, and it keeps frontier starts "
-             f"near a link's first success, so it needs frontier_start_prob > 0 "
-             f"(got {self.frontier_start_prob})")
         need(self.frontier_candidates >= 1 and self.frontier_min_open >= 1,
              f"frontier_candidates={self.frontier_candidates} and frontier_min_open="
              f"{self.frontier_min_open} must be >= 1")

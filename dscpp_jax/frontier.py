@@ -12,9 +12,6 @@ of one probe address that:
   uncovered free space within ``radius`` of the region of the option that the option in gestation
   targets (and at least ``inner`` from it), where that option's executions can succeed (a reverse
   curriculum over the chain);
-- **anchored links** (``Config.frontier_anchor``): once the link in gestation has succeeded, its
-  frontier starts stay near the start of its first success, so that it learns one side of a
-  target that sits at a junction;
 - **frontier parents** (``Config.frontier_parent``): a new option targets the newest mature option
   whose frontier is still open, and an option in gestation whose target's frontier has closed (a
   filled dead end) is re-targeted there, its examples cleared. The chain becomes a tree whose
@@ -74,32 +71,12 @@ def gestation_row(chain: Chain) -> jax.Array:
     return jnp.where(gest.any(), jnp.argmax(gest), -1).astype(jnp.int32)
 
 
-def start_pool(chain: Chain, probe: jax.Array, cand_xy=None, anchor: float = 0.0) -> jax.Array:
+def start_pool(chain: Chain, probe: jax.Array) -> jax.Array:
     """(M,) bool: the frontier of the row that the link in gestation targets (all False when no
-    link is in gestation): where frontier starts are drawn from.
-
-    With ``anchor`` > 0 (and the candidates ``cand_xy`` (M, 2)), once the link has succeeded, only
-    candidates within ``anchor`` of its first success's start state stay in the pool: a target at a
-    junction has frontier on several sides, and a link that collects its positives on two of them
-    learns a region split across the junction (``Config.frontier_anchor``)."""
+    link is in gestation): where frontier starts are drawn from."""
     g = gestation_row(chain)
-    gc = jnp.clip(g, 0)
-    p = chain.parent[gc]
-    pool = probe[jnp.clip(p, 0)] & (g >= 0) & (p >= 0)
-    if not float(anchor) > 0:
-        return pool
-    if cand_xy is None:
-        raise ValueError("start_pool: anchor > 0 needs the candidates cand_xy (M, 2)")
-    cand = jnp.asarray(cand_xy, jnp.float32)
-    # slot 0 of the positive ring holds the first success until the ring wraps, and a link matures
-    # after `gestation` <= max_pos_traj successes; re-targeting clears it (grow_chain)
-    first = chain.pos_xy[gc, 0, 0]
-    has = chain.pos_mask[gc, 0, 0] & (chain.pos_count[gc] >= 1)
-    near = jnp.sum((cand - first) ** 2, axis=-1) <= float(anchor) ** 2
-    anchored = pool & (near | ~has)
-    # a first success from outside the frontier (a diverse or task start) would empty the pool
-    # and with it the frontier starts: keep the whole pool then
-    return jnp.where(anchored.any(), anchored, pool)
+    p = chain.parent[jnp.clip(g, 0)]
+    return probe[jnp.clip(p, 0)] & (g >= 0) & (p >= 0)
 
 
 def frontier_parent(chain: Chain, is_open: jax.Array) -> jax.Array:

@@ -972,8 +972,7 @@ def _frontier_pool(config: Config, env, chain, key):
     from dscpp_jax import frontier
     cand = _frontier_candidates(config, env, key)
     return cand, frontier.start_pool(chain, frontier.frontier_probe(
-        chain, cand, config.frontier_radius, config.frontier_inner_radius), cand,
-        config.frontier_anchor)
+        chain, cand, config.frontier_radius, config.frontier_inner_radius))
 
 
 def _dp_value_table(config: Config, chain, td3):

@@ -69,35 +69,6 @@ def test_probe_matches_a_numpy_oracle(two_links):
     np.testing.assert_array_equal(F.open_rows(jnp.asarray(got), 1), want.any(axis=1))
 
 
-def test_an_anchored_pool_keeps_near_the_links_first_success(two_links):
-    ch = two_links
-    grid = np.stack(np.meshgrid(np.linspace(-9, 9, 37), np.linspace(-9, 12, 43)), -1)
-    cand = grid.reshape(-1, 2).astype(np.float32)
-    probe = F.frontier_probe(ch, cand, 5.0)
-    plain = np.asarray(F.start_pool(ch, probe))
-    assert plain.sum() > 20
-    # link 3 (in gestation) has two successes; the first one's start state is slot 0's
-    first = np.asarray(ch.pos_xy[3, 0, 0])
-    d = np.linalg.norm(cand - first, axis=-1)
-    for anchor in (1.0, 2.5):
-        got = np.asarray(F.start_pool(ch, probe, cand, anchor))
-        np.testing.assert_array_equal(got, plain & (d <= anchor))
-        assert 0 < got.sum() < plain.sum()
-    # an anchor far from the pool would empty it: the whole pool stays
-    far = ch.replace(pos_xy=ch.pos_xy.at[3, 0, 0].set(jnp.array([50.0, 50.0])))
-    np.testing.assert_array_equal(np.asarray(F.start_pool(far, probe, cand, 2.5)), plain)
-    # off: the plain pool
-    np.testing.assert_array_equal(np.asarray(F.start_pool(ch, probe, cand, 0.0)), plain)
-    # a link without a success yet (re-targeted: its examples cleared) draws from the whole pool
-    fresh = jax.jit(O.grow_chain)(ch, START_XY, jnp.asarray([False, True, False, False, False]))
-    assert int(fresh.pos_count[3]) == 0
-    probe_f = F.frontier_probe(fresh, cand, 5.0)
-    np.testing.assert_array_equal(np.asarray(F.start_pool(fresh, probe_f, cand, 1.0)),
-                                  np.asarray(F.start_pool(fresh, probe_f)))
-    with pytest.raises(ValueError, match="cand_xy"):
-        F.start_pool(ch, probe, None, 1.0)
-
-
 def test_probe_refuses_bad_input(two_links):
     with pytest.raises(ValueError, match="shape"):
         F.frontier_probe(two_links, np.zeros((3,), np.float32), 1.0)
@@ -170,7 +141,7 @@ def test_diverse_starts_take_the_frontier_share():
 def test_training_with_the_frontier_runs_and_groups_equal_separate_runs():
     # both uses on, under a seed vmap and alone (the logic itself: the tests above)
     cfg = tiny("mf_dscpp", frontier_start_prob=0.5, frontier_parent=True, frontier_candidates=64,
-               frontier_radius=4.0, frontier_min_open=2, frontier_anchor=2.0)
+               frontier_radius=4.0, frontier_min_open=2)
     keys = jax.random.split(jax.random.PRNGKey(5), 2)
     states = jax.vmap(lambda k: T.init(k, cfg))(keys)
     vstep = jax.jit(T.train_step_group_impl)
@@ -193,8 +164,6 @@ def test_training_with_the_frontier_runs_and_groups_equal_separate_runs():
     (dict(frontier_radius=0.0), "frontier_radius"),
     (dict(frontier_inner_radius=5.0, frontier_radius=5.0), "frontier_inner_radius"),
     (dict(frontier_candidates=0), "frontier_candidates"),
-    (dict(frontier_anchor=-1.0), "frontier_anchor"),
-    (dict(frontier_anchor=2.0), "frontier_start_prob > 0"),
 ])
 def test_bad_frontier_settings_are_refused(kw, match):
     with pytest.raises(ValueError, match=match):
