@@ -691,6 +691,7 @@ def cmd_diagnose(args) -> int:
     print(diagnose.format_table(rows))
     print()
     print(diagnose.format_summary(rows))
+    print(diagnose.format_means(rows))
     return 0
 
 

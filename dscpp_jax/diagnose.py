@@ -197,3 +197,29 @@ def format_summary(rows: Sequence[dict]) -> str:
     counts = collections.Counter(verdict_kind(r["verdict"]) for r in rows)
     parts = sorted(counts.items(), key=lambda kv: (-kv[1], kv[0]))
     return f"{len(rows)} runs: " + ", ".join(f"{k} {n}" for k, n in parts)
+
+
+def _mean_se(values: Sequence[float]) -> Optional[tuple]:
+    v = [float(x) for x in values if math.isfinite(float(x))]
+    if not v:
+        return None
+    m = sum(v) / len(v)
+    se = (math.sqrt(sum((x - m) ** 2 for x in v) / (len(v) - 1) / len(v))
+          if len(v) > 1 else 0.0)
+    return m, se, len(v)
+
+
+def format_means(rows: Sequence[dict]) -> str:
+    """One line: mean ± standard error over the runs of the final evaluation's success from the
+    start and of the in-band success at the end of training (runs without in-band evaluation
+    left out of the second, with their number said)."""
+    out = []
+    for key, name in (("success", "success from the start"), ("inband", "in-band at the end")):
+        ms = _mean_se([r.get(key, math.nan) for r in rows])
+        if ms is None:
+            out.append(f"{name} -")
+        else:
+            m, se, n = ms
+            out.append(f"{name} {m:.2f} ± {se:.2f}" + (f" ({n} of {len(rows)} runs)"
+                                                         if n < len(rows) else ""))
+    return ", ".join(out)

@@ -71,6 +71,14 @@ def test_each_failure_gets_its_verdict(tmp_path):
     assert summary == ("10 runs: falls 2, solved 2, broke late 1, not covered 1, "
                        "stalled link 1, start covered, failing on the way 1, table full 1, "
                        "weak link 1")
+    # mean ± s.e. over the runs, worked by hand: (1, 0.5, 0) -> 0.50 ± sqrt(0.25 / 3);
+    # in-band (0.9, none, 0.7) -> 0.80 ± 0.10 over the two runs that have it
+    nan = float("nan")
+    rows = [dict(success=1.0, inband=0.9), dict(success=0.5, inband=nan),
+            dict(success=0.0, inband=0.7)]
+    assert D.format_means(rows) == ("success from the start 0.50 ± 0.29, "
+                                    "in-band at the end 0.80 ± 0.10 (2 of 3 runs)")
+    assert D.format_means([]) == "success from the start -, in-band at the end -"
 
 
 def test_dips_count_periodic_evaluations_below_half_once_solved(tmp_path):
