@@ -14,6 +14,9 @@ already writes (``docs/training.md``; the medium maze in ``experiments/results/p
   least ``STALLED_LINK_EXECUTIONS`` executions without a success;
 - ``not covered``: no option's region holds the start yet, for none of those reasons (a chain
   still growing when the episodes ran out);
+- ``unfinished``: the run has no ``eval.json`` yet (stopped or still training before its final
+  evaluation); its row shows what ``metrics.csv`` holds (episodes, in-band success, coverage) and
+  the means leave it out of the final success;
 - ``broke late`` (before any of the above): the in-band evaluation's last window
   (``inband/success_rate``, episodes that began in about the last 20-40 iterations) was at or
   above ``SOLVED`` and the final evaluation is below it by more than ``LATE_DROP`` (over three
@@ -97,20 +100,23 @@ def _num(d: dict, key: str, default: float = math.nan) -> float:
 
 def diagnose_run(run_dir: str) -> dict:
     """One run's reading: success, coverage, falls, weak links and the verdict (see the module
-    docstring). Raises ValueError naming what is missing when the directory holds no
-    ``metrics.csv`` or no ``eval.json``."""
+    docstring). A run without ``eval.json`` gets the verdict ``unfinished`` and a NaN success.
+    Raises ValueError naming what is missing when the directory holds no ``metrics.csv``, or
+    when that has no skill-chain columns (flat learners)."""
     paths = {n: os.path.join(run_dir, n) for n in ("metrics.csv", "eval.json", "config.json")}
-    for n in ("metrics.csv", "eval.json"):
-        if not os.path.isfile(paths[n]):
-            raise ValueError(f"{run_dir}: no {n}; diagnose reads a finished run's metrics.csv and "
-                             f"eval.json (a seed's directory, or a group directory for all its "
-                             f"seeds)")
+    if not os.path.isfile(paths["metrics.csv"]):
+        raise ValueError(f"{run_dir}: no metrics.csv; diagnose reads a run's metrics.csv and "
+                         f"eval.json (a seed's directory, or a group directory for all its "
+                         f"seeds)")
     last = _last_row(paths["metrics.csv"])
     if "options/start_covered" not in last:
         raise ValueError(f"{run_dir}: metrics.csv has no options/* columns; diagnose reads the "
                          f"skill chain of DSC, dual, MF-DSC++ or MB-DSC++ runs")
-    with open(paths["eval.json"]) as f:
-        ev = json.load(f)
+    finished = os.path.isfile(paths["eval.json"])
+    ev = {}
+    if finished:
+        with open(paths["eval.json"]) as f:
+            ev = json.load(f)
     episodes = math.nan
     if os.path.isfile(paths["config.json"]):
         with open(paths["config.json"]) as f:
@@ -123,11 +129,15 @@ def diagnose_run(run_dir: str) -> dict:
     g_parent = int(_num(last, "options/gestation_parent", -1.0))
     stalled = link_stalled(last)
     falls = _num(ev, "eval/flipped_failures")
-    failures = round((1.0 - success) * episodes) if math.isfinite(episodes) else math.nan
+    failures = (round((1.0 - success) * episodes)
+                if math.isfinite(episodes) and math.isfinite(success) else math.nan)
     weak = sorted(int(k.rsplit("/", 1)[1]) for k, v in ev.items()
                   if k.startswith("eval/option_success/") and int(k.rsplit("/", 1)[1]) > 0
                   and isinstance(v, (int, float)) and math.isfinite(v) and v < WEAK_LINK)
-    if success >= SOLVED:
+    if not finished:
+        verdict = (f"unfinished ({int(_num(last, 'episodes', 0.0))} episodes, start "
+                   f"{'covered' if covered else 'not covered'}, no final evaluation)")
+    elif success >= SOLVED:
         verdict = "solved"
     elif covered:
         parts = []
@@ -175,7 +185,8 @@ def format_table(rows: Sequence[dict], root: Optional[str] = None) -> str:
                  else f"{int(r['falls'])}")
         inband = r.get("inband", math.nan)
         dip = r.get("dips")
-        cells = [run, f"{r['success']:.2f}", f"{inband:.2f}" if math.isfinite(inband) else "-",
+        success = f"{r['success']:.2f}" if math.isfinite(r["success"]) else "-"
+        cells = [run, success, f"{inband:.2f}" if math.isfinite(inband) else "-",
                  "-" if not dip or not dip[1] else f"{dip[0]} of {dip[1]}",
                  "yes" if r["start_covered"] else "no",
                  f"{r['options']}" + (" (full)" if r["table_full"] else ""), falls,

@@ -1120,8 +1120,9 @@ NOTES_HEADING = "\n## Notes\n"
 
 
 def failure_lines(data: Data) -> list:
-    """One line per group with a skill chain: how many of its finished seeds got each
-    `dscpp_jax.diagnose` verdict (solved, falls, weak link, broke late, ...)."""
+    """One line per group with a skill chain: how many of its seeds got each
+    `dscpp_jax.diagnose` verdict (solved, falls, weak link, broke late, ..., and unfinished for
+    seeds without their final evaluation yet)."""
     from dscpp_jax import diagnose
     out = []
     for info in data.info.values():
@@ -1129,7 +1130,7 @@ def failure_lines(data: Data) -> list:
         for d in info["seeds"]:
             try:
                 rows.append(diagnose.diagnose_run(d))
-            except ValueError:   # not finished (no eval.json) or no skill chain (flat learners)
+            except ValueError:   # no metrics yet, or no skill chain (flat learners)
                 continue
         if rows:
             out.append(f"- `{os.path.basename(os.path.normpath(info['dir']))}`: "

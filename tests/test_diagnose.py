@@ -105,9 +105,16 @@ def test_diagnose_takes_groups_and_says_what_is_missing(tmp_path, capsys):
     a = _run(tmp_path, "a", {"options/start_covered": 1}, {"eval/success_rate": 1.0})
     with pytest.raises(ValueError, match="no metrics.csv"):
         D.diagnose_run(str(tmp_path))
+    # a run stopped before its final evaluation: read off metrics.csv, left out of the mean
     (tmp_path / "a" / "eval.json").rename(tmp_path / "eval.json.bak")
-    with pytest.raises(ValueError, match="no eval.json"):
-        D.diagnose_run(a)
+    r = D.diagnose_run(a)
+    assert r["verdict"] == "unfinished (0 episodes, start covered, no final evaluation)"
+    assert math.isnan(r["success"]) and D.verdict_kind(r["verdict"]) == "unfinished"
+    assert "| a | - | - | - | yes |" in D.format_table([r], str(tmp_path))
+    done = _run(tmp_path, "done", {"options/start_covered": 1}, {"eval/success_rate": 0.5})
+    assert D.format_summary([r, D.diagnose_run(done)]) == "2 runs: start covered, failing on the way 1, unfinished 1"
+    assert D.format_means([r, D.diagnose_run(done)]).startswith(
+        "success from the start 0.50 ± 0.00 (1 of 2 runs)")
     (tmp_path / "eval.json.bak").rename(tmp_path / "a" / "eval.json")
     flat = _run(tmp_path, "flat", {}, {"eval/success_rate": 0.0})
     with open(f"{flat}/metrics.csv", "w") as f:
