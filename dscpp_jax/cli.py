@@ -787,7 +787,7 @@ def cmd_train(args) -> int:
 def _chain_verdict(cfg, run_dir: str):
     """`diagnose`'s verdict for a finished run with a skill chain (None for flat learners or
     when the run left no eval.json)."""
-    if not cfg.hierarchical:
+    if not cfg.hierarchical or not os.path.isfile(os.path.join(run_dir, "eval.json")):
         return None
     try:
         return diagnose.diagnose_run(run_dir)["verdict"]

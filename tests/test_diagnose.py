@@ -115,6 +115,11 @@ def test_diagnose_takes_groups_and_says_what_is_missing(tmp_path, capsys):
     assert D.format_summary([r, D.diagnose_run(done)]) == "2 runs: start covered, failing on the way 1, unfinished 1"
     assert D.format_means([r, D.diagnose_run(done)]).startswith(
         "success from the start 0.50 ± 0.00 (1 of 2 runs)")
+    # train's own end-of-run line gives no verdict for a run whose evaluation is missing
+    from dscpp_jax import config as C
+    cfg = C.preset("fast", env="point_u_maze", algo="mb_dscpp")
+    assert cli._chain_verdict(cfg, a) is None
+    assert cli._chain_verdict(cfg, done) == "start covered, failing on the way"
     (tmp_path / "eval.json.bak").rename(tmp_path / "a" / "eval.json")
     flat = _run(tmp_path, "flat", {}, {"eval/success_rate": 0.0})
     with open(f"{flat}/metrics.csv", "w") as f:
