@@ -253,18 +253,41 @@ def _eval_iteration(seed_dir: str) -> Optional[int]:
         return None
 
 
+def _frontier_note(data, args) -> str:
+    """A sentence for the protocol line where the preset gave some skill chains the chain's
+    frontier (beyond the paper; dscpp_jax.config.FRONTIER_PRESET), else ""."""
+    from dscpp_jax.config import FRONTIER_MAZES, FRONTIER_PRESET, HIERARCHICAL_ALGOS
+    if args.preset != "fast":
+        return ""
+    mazes = sorted({e.env for e in data.info if e.algo in HIERARCHICAL_ALGOS
+                    and e.run_env(args.env_map) in FRONTIER_MAZES})
+    if not mazes:
+        return ""
+    sets = " ".join(f"{k}={str(v).lower() if isinstance(v, bool) else format(v, 'g')}"
+                    for k, v in FRONTIER_PRESET.items())
+    return (f" Beyond the paper, the preset's skill chains on {' and '.join(mazes)} use the "
+            f"chain's frontier (`{sets}`; `docs/training.md`, \"The chain's frontier\")"
+            + (", and MB-DSC++ 32 option rows on the medium maze." if "medium" in mazes else "."))
+
+
 def config_mismatch(group_dir: str, exp: Exp, args) -> list:
-    """Fields the group was made with that differ from what this call asks for."""
-    from dscpp_jax.config import Config
+    """Fields the group was made with that differ from what this call would train it with: the
+    preset of this version with the driver's, the user's and the experiment's --set pairs. A
+    field the group's config lacks (added since) counts at its default, which is what the group
+    ran with; so a group made before a preset changed is told apart from one made after. Not
+    compared: the schedule and bookkeeping fields a resumed call may change (RESUME_FIELDS), the
+    seed (the group's seeds are its own), and the physics back end `auto` resolved to on the
+    training host, unless --set names it."""
+    from dscpp_jax.config import Config, preset
     with open(os.path.join(group_dir, "group.json")) as f:
         have = json.load(f)["config"]
-    want = {k: v for k, v in _overrides(_sets(exp, args)).items()
-            if k not in RESUME_FIELDS}
-    want.update(env=exp.run_env(args.env_map), algo=exp.algo, subgoal=exp.subgoal,
-                preset=args.preset)
-    made = Config.from_dict(have)   # fields added since the group was made: what it ran with
-    had = {k: getattr(made, k, have.get(k)) for k in want}
-    return [f"{k}={had[k]!r} (asked: {v!r})" for k, v in sorted(want.items()) if had[k] != v]
+    kw = _overrides(_sets(exp, args))
+    kw.update(subgoal=exp.subgoal)
+    skip = set(RESUME_FIELDS) | {"seed"} | ({"physics"} if "physics" not in kw else set())
+    want = {k: v for k, v in preset(args.preset, exp.run_env(args.env_map), exp.algo,
+                                     **kw).to_dict().items() if k not in skip}
+    made = Config.from_dict(have).to_dict()   # fields added since: what it ran with
+    return [f"{k}={made[k]!r} (asked: {v!r})" for k, v in sorted(want.items()) if made[k] != v]
 
 
 # ------------------------------------------------------------------------------------------------
@@ -1174,7 +1197,7 @@ def write_readme(data: Data, args, figures: dict, status: dict) -> str:
         + "".join(f" (`{', '.join(v)}` on {k})" for k, v in PAPER_ENV_SETS.items())
         + (f"; overrides: {', '.join(args.set)}" if args.set else "")
         + (f"; envs replaced: {', '.join(f'{k} -> {v}' for k, v in args.env_map.items())}"
-           if args.env_map else "") + ".",
+           if args.env_map else "") + "." + _frontier_note(data, args),
         "A claim is *reproduced* when the measured means order as the paper says, each step "
         "by more than one standard error of the difference (criteria in "
         "`experiments/reproduce.py`, `claims`); *incomplete* while some of its runs have not "

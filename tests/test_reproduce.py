@@ -541,3 +541,35 @@ def test_driver_trains_td3_in_float32_and_older_groups_still_match(tmp_path):
     args.env_map = {"u_maze": "point_u_maze"}     # the point twin keeps its own preset
     assert "mpc_samples" not in " ".join(
         reproduce.train_command(u, str(tmp_path / "g"), args, resume=False))
+
+
+def test_a_group_made_before_a_preset_change_is_a_mismatch(tmp_path):
+    """The driver compares a group's whole config with what the preset gives now, not only the
+    fields a call names: a medium-maze group made before the preset turned on the chain's frontier
+    is told apart (and left as it is), a group made after matches, and the host's resolved
+    physics back end is no mismatch."""
+    from dscpp_jax.config import preset
+    args = reproduce.build_parser().parse_args(["--runs-root", str(tmp_path), "--out", str(tmp_path)])
+    args.env_map = {}
+    exp = reproduce.Exp("medium", "mb_dscpp", 2001, "0-4")
+    gdir = tmp_path / "grp"
+    gdir.mkdir()
+
+    def mismatch(config):
+        (gdir / "group.json").write_text(json.dumps({"seeds": [0, 1], "config": config}))
+        return reproduce.config_mismatch(str(gdir), exp, args)
+
+    now = dict(dataclasses.asdict(preset("fast", "medium", "mb_dscpp", td3_dtype="float32")),
+               physics="warp", seed=1, total_episodes=1000, eval_every=5)
+    assert mismatch(now) == []
+    before = {k: v for k, v in now.items() if not k.startswith("frontier_")}
+    before["max_options"] = 24
+    bad = mismatch(before)
+    assert "frontier_start_prob=0.0 (asked: 0.5)" in bad and "max_options=24 (asked: 32)" in bad
+    assert len(bad) == 5, bad
+    # the user's --set still decides: asking for the paper's rule matches the older group
+    args.set = ["frontier_start_prob=0", "frontier_parent=false", "frontier_radius=5",
+                "frontier_inner_radius=0", "max_options=24"]
+    assert mismatch(before) == []
+    args.set = ["physics=mjx"]     # a back end the call names is compared
+    assert mismatch(now) == ["physics='warp' (asked: 'mjx')"]
