@@ -64,6 +64,21 @@ def test_presets_keep_paper_constants():
     assert [preset("fast", e).mpc_samples for e in ("u_maze", "four_rooms", "medium", "large",
                                                       "ant_reacher")] == [2048] + [4096] * 4
     assert preset("fast", "point_u_maze").mpc_samples == 128
+    # the chain's frontier: on for the skill chains of the ant mazes with dead ends, off elsewhere
+    for env, algo, rows in (("medium", "mb_dscpp", 32), ("medium", "mf_dscpp", 24),
+                            ("medium", "dsc", 24), ("large", "mb_dscpp", 24)):
+        f = preset("fast", env, algo)
+        assert (f.frontier_start_prob, f.frontier_parent, f.frontier_radius,
+                f.frontier_inner_radius, f.max_options) == (0.5, True, 6.0, 3.0, rows), (env, algo)
+    for env, algo in (("u_maze", "mb_dscpp"), ("four_rooms", "mf_dscpp"), ("medium", "td3_her"),
+                      ("medium", "mb_flat"), ("point_medium", "mb_dscpp")):
+        f = preset("fast", env, algo)
+        assert (f.frontier_start_prob, f.frontier_parent) == (0.0, False), (env, algo)
+    assert preset("paper", "medium", "mb_dscpp").frontier_start_prob == 0.0
+    # turning diverse starts off leaves the frontier off rather than failing validation
+    f = preset("fast", "medium", "mb_dscpp", diverse_starts=False)
+    assert (f.frontier_start_prob, f.frontier_parent) == (0.0, False)
+    assert preset("fast", "medium", "mf_dscpp", frontier_start_prob=0.0).frontier_parent
     # the ant's integrator reaches the MuJoCo model; point-mass envs ignore it
     import mujoco
     assert T.make_env(p).mj_model.opt.integrator == mujoco.mjtIntegrator.mjINT_RK4   # D4RL's
