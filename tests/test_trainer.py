@@ -79,6 +79,13 @@ def test_presets_keep_paper_constants():
     f = preset("fast", "medium", "mb_dscpp", diverse_starts=False)
     assert (f.frontier_start_prob, f.frontier_parent) == (0.0, False)
     assert preset("fast", "medium", "mf_dscpp", frontier_start_prob=0.0).frontier_parent
+    # every preset of every env and algorithm is a valid config as it comes
+    import envs
+    from dscpp_jax.config import ALGOS
+    for name in ("fast", "paper"):
+        for env in envs.ENV_NAMES:
+            for algo in ALGOS:
+                preset(name, env, algo).validate()
     # the ant's integrator reaches the MuJoCo model; point-mass envs ignore it
     import mujoco
     assert T.make_env(p).mj_model.opt.integrator == mujoco.mjtIntegrator.mjINT_RK4   # D4RL's
