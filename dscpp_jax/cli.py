@@ -61,6 +61,17 @@ def config_from_args(args) -> Config:
     return cfg
 
 
+def frontier_note(cfg: Config) -> str:
+    """One line for a run whose skill chain uses the chain's frontier (beyond the paper; on in the
+    ant preset for the medium and large mazes), saying how to train the paper's rule instead;
+    "" otherwise."""
+    if not cfg.hierarchical or (cfg.frontier_start_prob == 0 and not cfg.frontier_parent):
+        return ""
+    return (f"{cfg.env}: the chain's frontier is on (beyond the paper: frontier_start_prob="
+            f"{cfg.frontier_start_prob:g}, frontier_parent={str(cfg.frontier_parent).lower()}); "
+            f"the paper's rule: --set frontier_start_prob=0 --set frontier_parent=false")
+
+
 DETERMINISTIC_FLAG = "--xla_gpu_deterministic_ops=true"
 
 
@@ -266,6 +277,9 @@ def train(cfg: Optional[Config] = None, run_dir: Optional[str] = None, resume: b
     if _is_ant(cfg):
         print(f"{cfg.env}: {'MuJoCo Warp' if cfg.physics == 'warp' else 'MJX (JAX)'} physics on "
               f"{jax.default_backend().upper()}", file=sys.stderr)
+    note = frontier_note(cfg)
+    if note:
+        print(note, file=sys.stderr)
     try:
         os.makedirs(run_dir, exist_ok=True)
     except OSError as e:

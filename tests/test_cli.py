@@ -362,3 +362,15 @@ def test_compile_cache_stores_programs_and_a_second_process_loads_them(tmp_path)
     assert use_compile_cache("off") is None and use_compile_cache("") is None
     assert build_parser().parse_args(["train", "--compile-cache", "d"]).compile_cache == "d"
     assert build_parser().parse_args(["eval", "--run", "r"]).compile_cache is None
+
+
+def test_train_names_the_chains_frontier_where_the_preset_turns_it_on():
+    from dscpp_jax.cli import frontier_note
+    from dscpp_jax.config import preset
+    note = frontier_note(preset("fast", "medium", "mb_dscpp"))
+    assert "frontier_start_prob=0.5" in note and "frontier_parent=true" in note
+    assert "--set frontier_start_prob=0 --set frontier_parent=false" in note
+    assert frontier_note(preset("fast", "u_maze", "mb_dscpp")) == ""
+    assert frontier_note(preset("fast", "medium", "td3_her")) == ""
+    assert frontier_note(preset("fast", "medium", "mf_dscpp", frontier_start_prob=0.0,
+                                frontier_parent=False)) == ""
