@@ -218,6 +218,18 @@ class Config:
     def num_iterations(self) -> int:
         return -(-self.total_env_steps // self.steps_per_iteration_total)
 
+    def inert_fields(self) -> frozenset:
+        """Fields this config's other settings leave without effect (comparing two configs, a
+        difference in them changes nothing): the chain's frontier's parameters where the frontier
+        is off, and the frontier starts' inner radius where only frontier parents are on."""
+        starts = self.hierarchical and self.frontier_start_prob > 0
+        if starts:
+            return frozenset()
+        if self.hierarchical and self.frontier_parent:
+            return frozenset({"frontier_inner_radius"})
+        return frozenset({"frontier_radius", "frontier_inner_radius", "frontier_candidates",
+                          "frontier_min_open"})
+
     # ------------------------------------------------------------------------------------------
     def override(self, **kw: Any) -> "Config":
         """A copy with some fields replaced (unknown names raise a ValueError)."""

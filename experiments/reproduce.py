@@ -276,18 +276,21 @@ def config_mismatch(group_dir: str, exp: Exp, args) -> list:
     field the group's config lacks (added since) counts at its default, which is what the group
     ran with; so a group made before a preset changed is told apart from one made after. Not
     compared: the schedule and bookkeeping fields a resumed call may change (RESUME_FIELDS), the
-    seed (the group's seeds are its own), and the physics back end `auto` resolved to on the
-    training host, unless --set names it."""
+    seed (the group's seeds are its own), the physics back end `auto` resolved to on the
+    training host unless --set names it, and fields without effect in both configs
+    (`Config.inert_fields`)."""
     from dscpp_jax.config import Config, preset
     with open(os.path.join(group_dir, "group.json")) as f:
         have = json.load(f)["config"]
     kw = _overrides(_sets(exp, args))
     kw.update(subgoal=exp.subgoal)
     skip = set(RESUME_FIELDS) | {"seed"} | ({"physics"} if "physics" not in kw else set())
-    want = {k: v for k, v in preset(args.preset, exp.run_env(args.env_map), exp.algo,
-                                     **kw).to_dict().items() if k not in skip}
-    made = Config.from_dict(have).to_dict()   # fields added since: what it ran with
-    return [f"{k}={made[k]!r} (asked: {v!r})" for k, v in sorted(want.items()) if made[k] != v]
+    asked = preset(args.preset, exp.run_env(args.env_map), exp.algo, **kw)
+    made = Config.from_dict(have)   # fields added since: what it ran with
+    skip |= asked.inert_fields() & made.inert_fields()   # e.g. the radius of a frontier left off
+    want = {k: v for k, v in asked.to_dict().items() if k not in skip}
+    had = made.to_dict()
+    return [f"{k}={had[k]!r} (asked: {v!r})" for k, v in sorted(want.items()) if had[k] != v]
 
 
 # ------------------------------------------------------------------------------------------------

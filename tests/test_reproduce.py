@@ -567,9 +567,12 @@ def test_a_group_made_before_a_preset_change_is_a_mismatch(tmp_path):
     bad = mismatch(before)
     assert "frontier_start_prob=0.0 (asked: 0.5)" in bad and "max_options=24 (asked: 32)" in bad
     assert len(bad) == 5, bad
-    # the user's --set still decides: asking for the paper's rule matches the older group
-    args.set = ["frontier_start_prob=0", "frontier_parent=false", "frontier_radius=5",
-                "frontier_inner_radius=0", "max_options=24"]
+    # the user's --set still decides: asking for the paper's rule matches the older group (the
+    # frontier's radii, without effect in both, do not count)
+    args.set = ["frontier_start_prob=0", "frontier_parent=false", "max_options=24"]
     assert mismatch(before) == []
+    args.set = ["frontier_start_prob=0", "max_options=24"]    # frontier parents still on
+    assert mismatch(before) == ["frontier_parent=False (asked: True)",
+                                "frontier_radius=5.0 (asked: 6.0)"]
     args.set = ["physics=mjx"]     # a back end the call names is compared
     assert mismatch(now) == ["physics='warp' (asked: 'mjx')"]

@@ -79,6 +79,12 @@ def test_presets_keep_paper_constants():
     f = preset("fast", "medium", "mb_dscpp", diverse_starts=False)
     assert (f.frontier_start_prob, f.frontier_parent) == (0.0, False)
     assert preset("fast", "medium", "mf_dscpp", frontier_start_prob=0.0).frontier_parent
+    # the frontier's parameters count only where the frontier is on
+    assert f.inert_fields() == {"frontier_radius", "frontier_inner_radius",
+                                "frontier_candidates", "frontier_min_open"}
+    assert preset("fast", "medium", "mb_dscpp").inert_fields() == set()
+    assert preset("fast", "medium", "mb_dscpp", frontier_start_prob=0.0).inert_fields() == {
+        "frontier_inner_radius"}
     # every preset of every env and algorithm is a valid config as it comes
     import envs
     from dscpp_jax.config import ALGOS
