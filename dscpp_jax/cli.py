@@ -869,6 +869,9 @@ def cmd_train_group(args) -> int:
     else:
         cfg = config_from_args(args)
         group_dir = args.run_dir
+    note = frontier_note(cfg)
+    if note:
+        print(note, file=sys.stderr)
     try:
         states, group_dir, summaries = group_train.train_group(
             cfg, seeds, group_dir, resume=bool(args.resume), time_budget=args.time_budget,
