@@ -65,7 +65,7 @@ def frontier_note(cfg: Config) -> str:
     """One line for a run whose skill chain uses the chain's frontier (beyond the paper; on in the
     ant preset for the medium and large mazes), saying how to train the paper's rule instead;
     "" otherwise."""
-    if not cfg.hierarchical or (cfg.frontier_start_prob == 0 and not cfg.frontier_parent):
+    if not cfg.frontier_on:
         return ""
     return (f"{cfg.env}: the chain's frontier is on (beyond the paper: frontier_start_prob="
             f"{cfg.frontier_start_prob:g}, frontier_parent={str(cfg.frontier_parent).lower()}); "

@@ -218,17 +218,19 @@ class Config:
     def num_iterations(self) -> int:
         return -(-self.total_env_steps // self.steps_per_iteration_total)
 
+    @property
+    def frontier_on(self) -> bool:
+        """Whether the skill chain uses the chain's frontier (frontier starts or parents)."""
+        return self.hierarchical and (self.frontier_start_prob > 0 or self.frontier_parent)
+
     def inert_fields(self) -> frozenset:
         """Fields this config's other settings leave without effect (comparing two configs, a
         difference in them changes nothing): the chain's frontier's parameters where the frontier
         is off, and the frontier starts' inner radius where only frontier parents are on."""
-        starts = self.hierarchical and self.frontier_start_prob > 0
-        if starts:
-            return frozenset()
-        if self.hierarchical and self.frontier_parent:
-            return frozenset({"frontier_inner_radius"})
-        return frozenset({"frontier_radius", "frontier_inner_radius", "frontier_candidates",
-                          "frontier_min_open"})
+        if not self.frontier_on:
+            return frozenset({"frontier_radius", "frontier_inner_radius", "frontier_candidates",
+                              "frontier_min_open"})
+        return frozenset() if self.frontier_start_prob > 0 else frozenset({"frontier_inner_radius"})
 
     # ------------------------------------------------------------------------------------------
     def override(self, **kw: Any) -> "Config":

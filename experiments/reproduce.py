@@ -256,18 +256,18 @@ def _eval_iteration(seed_dir: str) -> Optional[int]:
 def _frontier_note(data, args) -> str:
     """A sentence for the protocol line where the preset gave some skill chains the chain's
     frontier (beyond the paper; dscpp_jax.config.FRONTIER_PRESET), else ""."""
-    from dscpp_jax.config import FRONTIER_MAZES, FRONTIER_PRESET, HIERARCHICAL_ALGOS
-    if args.preset != "fast":
-        return ""
-    mazes = sorted({e.env for e in data.info if e.algo in HIERARCHICAL_ALGOS
-                    and e.run_env(args.env_map) in FRONTIER_MAZES})
+    from dscpp_jax.config import FRONTIER_PRESET, preset
+    mazes = sorted({e.env for e in data.info
+                    if preset(args.preset, e.run_env(args.env_map), e.algo).frontier_on})
     if not mazes:
         return ""
     sets = " ".join(f"{k}={str(v).lower() if isinstance(v, bool) else format(v, 'g')}"
                     for k, v in FRONTIER_PRESET.items())
+    rows = preset(args.preset, "medium", "mb_dscpp").max_options
     return (f" Beyond the paper, the preset's skill chains on {' and '.join(mazes)} use the "
             f"chain's frontier (`{sets}`; `docs/training.md`, \"The chain's frontier\")"
-            + (", and MB-DSC++ 32 option rows on the medium maze." if "medium" in mazes else "."))
+            + (f", and MB-DSC++ {rows} option rows on the medium maze." if "medium" in mazes
+               else "."))
 
 
 def config_mismatch(group_dir: str, exp: Exp, args) -> list:
