@@ -28,7 +28,8 @@ MODEL_BASED_ALGOS = ("mb_dscpp", "mb_flat", "mb_flat_value")
 # (beyond the paper; dscpp_jax.frontier, docs/training.md "The chain's frontier"): with junctions
 # and dead ends, the paper's linear chain turns away from the start in most seeds there. Measured
 # on the medium maze, 10 seeds each: MF-DSC++ 0.77 +- 0.05 against 0.16 +- 0.16 (5) with the
-# paper's rule, MB-DSC++ 0.72 +- 0.12 with 32 rows (experiments/results/paper/README.md).
+# paper's rule, MB-DSC++ 0.72 +- 0.12 with 32 rows, 0.92 +- 0.01 with 32 rows and the paper's one
+# TD3 step per transition (experiments/results/paper/README.md).
 FRONTIER_MAZES = ("medium", "large")
 FRONTIER_PRESET = dict(frontier_start_prob=0.5, frontier_parent=True, frontier_radius=6.0,
                        frontier_inner_radius=3.0)
@@ -425,7 +426,8 @@ def preset(name: str = "fast", env: str = "point_u_maze", algo: str = "mb_dscpp"
       evaluations; stops at 2,001 episodes (or 4M env steps). On the mazes with junctions and
       dead ends (medium, large) the skill chains also use the chain's frontier (beyond the paper:
       half the training episodes start on it, and a chain that has filled a dead end branches
-      back; `FRONTIER_PRESET`), and MB-DSC++ has 32 option rows on the medium maze.
+      back; `FRONTIER_PRESET`), and MB-DSC++ has 32 option rows and the paper's 1 TD3 step per
+      transition on the medium maze (about 18 minutes for 5 seeds on one H200).
 
     Why each setting, with the measurements: docs/training.md ("Presets") and
     experiments/results/train_ant/README.md.
@@ -470,7 +472,7 @@ def preset(name: str = "fast", env: str = "point_u_maze", algo: str = "mb_dscpp"
                 "diverse_starts", True):
             base.update(FRONTIER_PRESET)
             if env == "medium" and algo in MODEL_BASED_ALGOS:
-                base.update(max_options=32)
+                base.update(max_options=32, td3_updates_per_step=1.0)
     base.update(overrides)
     return Config(**base)
 

@@ -263,11 +263,14 @@ def _frontier_note(data, args) -> str:
         return ""
     sets = " ".join(f"{k}={str(v).lower() if isinstance(v, bool) else format(v, 'g')}"
                     for k, v in FRONTIER_PRESET.items())
-    rows = preset(args.preset, "medium", "mb_dscpp").max_options
+    mb = preset(args.preset, "medium", "mb_dscpp")
+    ratio = ("" if mb.td3_updates_per_step == preset(args.preset, "u_maze", "mb_dscpp")
+             .td3_updates_per_step else f" and {mb.td3_updates_per_step:g} TD3 step"
+             f"{'' if mb.td3_updates_per_step == 1 else 's'} per transition")
     return (f" Beyond the paper, the preset's skill chains on {' and '.join(mazes)} use the "
             f"chain's frontier (`{sets}`; `docs/training.md`, \"The chain's frontier\")"
-            + (f", and MB-DSC++ {rows} option rows on the medium maze." if "medium" in mazes
-               else "."))
+            + (f", and MB-DSC++ {mb.max_options} option rows{ratio} on the medium maze."
+               if "medium" in mazes else "."))
 
 
 def config_mismatch(group_dir: str, exp: Exp, args) -> list:

@@ -576,3 +576,20 @@ def test_a_group_made_before_a_preset_change_is_a_mismatch(tmp_path):
                                 "frontier_radius=5.0 (asked: 6.0)"]
     args.set = ["physics=mjx"]     # a back end the call names is compared
     assert mismatch(now) == ["physics='warp' (asked: 'mjx')"]
+    # a 32-row frontier group made before MB-DSC++ got one TD3 step per transition there
+    args.set = []
+    assert mismatch(dict(now, td3_updates_per_step=0.25)) == [
+        "td3_updates_per_step=0.25 (asked: 1.0)"]
+
+
+def test_protocol_line_names_what_the_preset_adds_beyond_the_paper():
+    import types
+    args = reproduce.build_parser().parse_args(["--runs-root", "r", "--out", "o"])
+    args.env_map = {}
+    data = types.SimpleNamespace(info=[reproduce.Exp("medium", "mb_dscpp", 2001, "0-4"),
+                                       reproduce.Exp("u_maze", "mf_dscpp", 2001, "0-4")])
+    note = reproduce._frontier_note(data, args)
+    assert "skill chains on medium use the chain's frontier" in note
+    assert "MB-DSC++ 32 option rows and 1 TD3 step per transition on the medium maze" in note
+    data.info = data.info[1:]          # U-maze only: nothing beyond the paper to name
+    assert reproduce._frontier_note(data, args) == ""

@@ -70,6 +70,10 @@ def test_presets_keep_paper_constants():
         f = preset("fast", env, algo)
         assert (f.frontier_start_prob, f.frontier_parent, f.frontier_radius,
                 f.frontier_inner_radius, f.max_options) == (0.5, True, 6.0, 3.0, rows), (env, algo)
+    # MB-DSC++ on the medium maze: the paper's one TD3 step per transition (0.25 elsewhere)
+    assert [preset("fast", e, a).td3_updates_per_step for e, a in (
+        ("medium", "mb_dscpp"), ("large", "mb_dscpp"), ("u_maze", "mb_dscpp"),
+        ("medium", "mb_flat_value"), ("medium", "mf_dscpp"))] == [1.0, 0.25, 0.25, 0.25, 1.0]
     for env, algo in (("u_maze", "mb_dscpp"), ("four_rooms", "mf_dscpp"), ("medium", "td3_her"),
                       ("medium", "mb_flat"), ("point_medium", "mb_dscpp")):
         f = preset("fast", env, algo)
