@@ -471,7 +471,7 @@ def preset(name: str = "fast", env: str = "point_u_maze", algo: str = "mb_dscpp"
         if env in FRONTIER_MAZES and algo in HIERARCHICAL_ALGOS and overrides.get(
                 "diverse_starts", True):
             base.update(FRONTIER_PRESET)
-            if env == "medium" and algo in MODEL_BASED_ALGOS:
+            if env == "medium" and algo == "mb_dscpp":
                 base.update(max_options=32, td3_updates_per_step=1.0)
     base.update(overrides)
     return Config(**base)

@@ -264,12 +264,11 @@ def _frontier_note(data, args) -> str:
     sets = " ".join(f"{k}={str(v).lower() if isinstance(v, bool) else format(v, 'g')}"
                     for k, v in FRONTIER_PRESET.items())
     mb = preset(args.preset, "medium", "mb_dscpp")
-    ratio = ("" if mb.td3_updates_per_step == preset(args.preset, "u_maze", "mb_dscpp")
-             .td3_updates_per_step else f" and {mb.td3_updates_per_step:g} TD3 step"
-             f"{'' if mb.td3_updates_per_step == 1 else 's'} per transition")
+    ratio = mb.td3_updates_per_step
     return (f" Beyond the paper, the preset's skill chains on {' and '.join(mazes)} use the "
             f"chain's frontier (`{sets}`; `docs/training.md`, \"The chain's frontier\")"
-            + (f", and MB-DSC++ {mb.max_options} option rows{ratio} on the medium maze."
+            + (f", and MB-DSC++ {mb.max_options} option rows and {ratio:g} TD3 "
+               f"step{'' if ratio == 1 else 's'} per transition on the medium maze."
                if "medium" in mazes else "."))
 
 
