@@ -72,6 +72,7 @@ class Config:
     # --- episodes and options (paper constants) ----------------------------------------------
     episode_length: int = 1000
     warmup_episodes: int = 50          # uniform-random episodes from the task start
+    warmup_episode_length: int = 0     # warm-up episodes end after this many steps (0: episode_length)
     goal_tolerance: float = 0.6
     gestation: int = 10
     buffer_len: int = 50
@@ -306,6 +307,9 @@ class Config:
         need(self.max_options >= 3, f"max_options={self.max_options} must be >= 3 (global, goal "
              "and at least one chain link)")
         need(self.warmup_episodes >= 0, "warmup_episodes must be >= 0")
+        need(0 <= self.warmup_episode_length <= self.episode_length,
+             f"warmup_episode_length={self.warmup_episode_length} must be in [0, episode_length="
+             f"{self.episode_length}] (0: warm-up episodes run the whole episode length)")
         for name in ("eval_every", "checkpoint_every"):
             need(int(getattr(self, name)) >= 0,
                  f"{name}={getattr(self, name)} must be >= 0 (train_step calls between them; "
