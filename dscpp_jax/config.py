@@ -39,7 +39,8 @@ FRONTIER_PRESET = dict(frontier_start_prob=0.5, frontier_parent=True, frontier_r
 RETIRED_FIELDS: dict[str, Any] = dict(
     td3_upright_weight=0.0, td3_upright_min=0.5, td3_absorb_fallen=False,
     mpc_upright_weight=0.0, mpc_upright_min=0.5, gestation_patience=0,
-    frontier_metric="euclidean", frontier_stall=0, svc_bound=0.0, frontier_anchor=0.0)
+    frontier_metric="euclidean", frontier_stall=0, svc_bound=0.0, frontier_anchor=0.0,
+    warmup_episode_length=0)
 # Fields only the host driver reads (the TrainState carries `Config.device_view()`).
 HOST_ONLY_DEFAULTS = dict(seed=0, total_env_steps=1, total_episodes=0, eval_every=0,
                           log_every=1, checkpoint_every=0, keep_checkpoints=1, preset="paper")
@@ -72,7 +73,6 @@ class Config:
     # --- episodes and options (paper constants) ----------------------------------------------
     episode_length: int = 1000
     warmup_episodes: int = 50          # uniform-random episodes from the task start
-    warmup_episode_length: int = 0     # warm-up episodes end after this many steps (0: episode_length)
     goal_tolerance: float = 0.6
     gestation: int = 10
     buffer_len: int = 50
@@ -307,9 +307,6 @@ class Config:
         need(self.max_options >= 3, f"max_options={self.max_options} must be >= 3 (global, goal "
              "and at least one chain link)")
         need(self.warmup_episodes >= 0, "warmup_episodes must be >= 0")
-        need(0 <= self.warmup_episode_length <= self.episode_length,
-             f"warmup_episode_length={self.warmup_episode_length} must be in [0, episode_length="
-             f"{self.episode_length}] (0: warm-up episodes run the whole episode length)")
         for name in ("eval_every", "checkpoint_every"):
             need(int(getattr(self, name)) >= 0,
                  f"{name}={getattr(self, name)} must be >= 0 (train_step calls between them; "

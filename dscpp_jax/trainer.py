@@ -483,15 +483,6 @@ def _rollout(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[s
                 nes = jax.vmap(env.step)(es, acts)
                 ib_nes = jax.vmap(ib_env.step)(ib.env_state, ib_acts)
             ib = _inband_record(config, ib_env, ib_chain, ib, ib_ex, ib_nes, seed_axis)
-        if config.warmup_episode_length > 0:
-            # warm-up episodes end after `warmup_episode_length` steps (a truncation): the
-            # episodes still in the warm-up are those begun before `warmup_episodes` finished
-            warm_cur = state.counters.episodes + acc["episodes"] < config.warmup_episodes
-            cut = warm_cur & (nes.info["steps"] >= config.warmup_episode_length)
-            nes = nes.replace(done=jnp.where(cut, jnp.ones_like(nes.done), nes.done),
-                              info=dict(nes.info, truncation=jnp.where(
-                                  cut, jnp.ones_like(nes.info["truncation"]),
-                                  nes.info["truncation"])))
         next_xy = nes.obs[:, :2]
         nan = nes.info["nan"] > 0
         overflow = jnp.any(nes.info["overflow"] > 0)

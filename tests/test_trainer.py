@@ -153,33 +153,6 @@ def test_episodes_begun_after_the_warm_up_start_anywhere():
     assert np.all(np.linalg.norm(xy - task_start, axis=-1) > 1.0), (xy, task_start)
 
 
-def test_warmup_episode_length_ends_the_warm_up_episodes_early():
-    # as above with warm-up episodes of 40 steps (2 iterations): the four warm-up episodes all end
-    # on the last step of iteration 2 (a truncation, no success), the warm-up is over after them
-    # and the episodes begun there start at diverse free states; later episodes run their whole
-    # 100 steps (no episode ends in iterations 3-5: none of them can be 40 steps long)
-    cfg = MB_DP.override(warmup_episode_length=40)
-    s = T.init(jax.random.PRNGKey(0), cfg)
-    task_start = np.asarray(s.env_state.obs[:, :2])
-    s, m = T.train_step(s)
-    assert int(s.counters.episodes) == 0 and float(m["train/warmup"]) == 1.0
-    s, m = T.train_step(s)
-    assert int(s.counters.episodes) == cfg.num_envs and float(m["train/warmup"]) == 1.0
-    assert float(m["train/episode_length"]) == 40.0 and float(m["train/episode_success"]) == 0.0
-    assert int(s.counters.env_steps) == 2 * cfg.num_envs * cfg.steps_per_iter
-    xy = np.asarray(s.env_state.obs[:, :2])
-    assert np.all(np.linalg.norm(xy - task_start, axis=-1) > 1.0), (xy, task_start)
-    for _ in range(3):
-        s, m = T.train_step(s)
-        assert float(m["train/warmup"]) == 0.0
-    assert int(s.counters.episodes) == cfg.num_envs + int(s.counters.episode_successes)
-
-
-def test_warmup_episode_length_must_fit_the_episode():
-    with pytest.raises(ValueError, match="warmup_episode_length=101"):
-        MB_DP.override(warmup_episode_length=101).validate()
-
-
 @pytest.mark.parametrize("prob", [1.0, 0.5])
 def test_task_start_prob_starts_that_share_of_episodes_at_the_task_start(prob):
     # as above, with task_start_prob: after the warm-up, every episode (prob 1) or about half of
