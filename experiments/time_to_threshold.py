@@ -4,6 +4,11 @@ threshold over a full window, or at a time limit.
     python experiments/time_to_threshold.py --dest runs/ttt --name four_rooms_s0 --threshold 0.8 \
         --limit 420 -- --env four_rooms --algo mf_dscpp --seed 0
 
+    # several seeds one after another (NAME_s0, NAME_s1, ...), on the caches the first one leaves,
+    # with a summary table; --goal counts the runs at the threshold within that many seconds
+    python experiments/time_to_threshold.py --dest runs/ttt --name u_maze --seeds 0-4 --goal 120 \
+        -- --env u_maze --algo mb_dscpp
+
 The clock starts with the command (imports, env build and compile included). The run must
 evaluate in-band (`inband_eval_envs > 0`, as the ant presets do); a window counts once it holds
 as many finished episodes as the run's in-band window. Writes DEST/NAME/ (the run directory),
@@ -11,6 +16,9 @@ DEST/NAME.log (its output) and DEST/time_NAME.json: the threshold, the first ite
 it (iteration, episodes, the loop's wall-clock, seconds from the command's start), or null when
 the run ended or hit the limit first. The run is stopped where the threshold is seen, so it has no
 final evaluation: this measures time to a result, not the result at the end of training.
+Every call also writes DEST/summary_NAME.{json,md}: per run the first iteration's end (loop
+seconds), the median seconds per iteration in and after the warm-up, and the hit; rewritten after
+each run, so an interrupted series keeps the runs it finished.
 """
 from __future__ import annotations
 
@@ -18,6 +26,7 @@ import argparse
 import csv
 import json
 import os
+import statistics
 import subprocess
 import sys
 import time
@@ -52,28 +61,55 @@ def inband_window(run_dir: str):
     return c["inband_eval_window"] if c.get("inband_eval_window", 0) > 0 else c["inband_eval_envs"]
 
 
-def main(argv=None):
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--dest", required=True)
-    p.add_argument("--name", required=True)
-    p.add_argument("--threshold", type=float, default=0.9)
-    p.add_argument("--limit", type=float, default=600.0, help="stop after this many seconds")
-    p.add_argument("train_args", nargs=argparse.REMAINDER, help="-- then the train arguments")
-    a = p.parse_args(argv)
-    train_args = a.train_args[1:] if a.train_args[:1] == ["--"] else a.train_args
-    if not train_args:
-        p.error("give the train arguments after --")
-    if any(x == "--run-dir" or x.startswith("--run-dir=") for x in train_args):
-        p.error("--run-dir is DEST/NAME; leave it out of the train arguments")
-    os.makedirs(a.dest, exist_ok=True)
-    run_dir = os.path.join(a.dest, a.name)
+def iteration_times(metrics_path: str):
+    """From a run's metrics.csv: when its first iteration ended (loop seconds) and the median
+    seconds per iteration during the warm-up and after it (None where there are none)."""
+    try:
+        with open(metrics_path) as f:
+            rows = list(csv.DictReader(f))
+    except OSError:
+        return dict(first_s=None, warmup_s=None, after_s=None)
+    wall = [float(r["wall_clock"]) for r in rows]
+    warm, after = [], []
+    for prev, r, t in zip(wall, rows[1:], wall[1:]):
+        (warm if float(r.get("train/warmup") or 0) > 0 else after).append(t - prev)
+    med = lambda xs: round(statistics.median(xs), 3) if xs else None
+    return dict(first_s=round(wall[0], 1) if wall else None, warmup_s=med(warm), after_s=med(after))
+
+
+def summary_table(rows, goal=None) -> str:
+    """A Markdown table of time_to_threshold results (one dict per run: name, hit, times)."""
+    def f(x, fmt):
+        return "-" if x is None else format(x, fmt)
+    out = ["| run | first iteration ends (loop) | s / iteration (warm-up / after) | "
+           "threshold: iteration, episodes | command start to threshold |",
+           "|---|---|---|---|---|"]
+    for r in rows:
+        h, t = r.get("hit"), r.get("times") or {}
+        out.append(f"| {r['name']} | {f(t.get('first_s'), '.1f')} s | {f(t.get('warmup_s'), '.2f')} / "
+                   f"{f(t.get('after_s'), '.2f')} | "
+                   + (f"{h['iteration']}, {h['episodes']:,} | {h['command_s']:.0f} s |" if h else
+                      f"not reached (stopped by {r.get('stopped_by')} at {r.get('stopped_s')} s) | - |"))
+    secs = sorted(r["hit"]["command_s"] for r in rows if r.get("hit"))
+    line = f"\n{len(secs)} of {len(rows)} runs reached the threshold"
+    if secs:
+        line += f"; command start to threshold {secs[0]:.0f}-{secs[-1]:.0f} s, median {statistics.median(secs):.0f} s"
+    if goal is not None:
+        line += f"; within {goal:g} s: {sum(s <= goal for s in secs)} of {len(rows)}"
+    return "\n".join(out) + line + "\n"
+
+
+def time_one(dest: str, name: str, train_args, threshold: float, limit: float) -> dict:
+    """Run one train command until its in-band window first reaches `threshold` (or `limit`
+    seconds pass, or it ends); write DEST/NAME/, DEST/NAME.log and DEST/time_NAME.json."""
+    run_dir = os.path.join(dest, name)
     cmd = [sys.executable, "-m", "dscpp_jax.cli", "train", *train_args, "--run-dir", run_dir,
            "--no-progress"]
     t0 = time.time()
-    with open(os.path.join(a.dest, f"{a.name}.log"), "w") as log:
+    with open(os.path.join(dest, f"{name}.log"), "w") as log:
         proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=ROOT)
         hit, window = None, None
-        while proc.poll() is None and time.time() - t0 < a.limit:
+        while proc.poll() is None and time.time() - t0 < limit:
             time.sleep(1.0)
             window = window or inband_window(run_dir)
             if window == 0:
@@ -81,7 +117,7 @@ def main(argv=None):
                 proc.wait()
                 sys.exit("the run does not evaluate in-band (inband_eval_envs=0): nothing to time")
             if window:
-                hit = first_hit(os.path.join(run_dir, "metrics.csv"), a.threshold, window)
+                hit = first_hit(os.path.join(run_dir, "metrics.csv"), threshold, window)
                 if hit:
                     hit["command_s"] = round(time.time() - t0, 1)
                     break
@@ -90,13 +126,59 @@ def main(argv=None):
             proc.kill()
         proc.wait()
     if hit is None and window:   # the run may have ended with a last row at or above it
-        hit = first_hit(os.path.join(run_dir, "metrics.csv"), a.threshold, window)
-    out = dict(name=a.name, command=" ".join(["python", "-m", "dscpp_jax.cli", "train"] + train_args),
-               threshold=a.threshold, window=window, hit=hit, stopped_s=round(time.time() - t0, 1),
+        hit = first_hit(os.path.join(run_dir, "metrics.csv"), threshold, window)
+    out = dict(name=name, command=" ".join(["python", "-m", "dscpp_jax.cli", "train"] + train_args),
+               threshold=threshold, window=window, hit=hit, stopped_s=round(time.time() - t0, 1),
                stopped_by="threshold" if hit else ("limit" if ended is None else f"exit {ended}"))
-    with open(os.path.join(a.dest, f"time_{a.name}.json"), "w") as f:
+    with open(os.path.join(dest, f"time_{name}.json"), "w") as f:
         json.dump(out, f, indent=1)
-    print(json.dumps(out))
+    return out
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--dest", required=True)
+    p.add_argument("--name", required=True)
+    p.add_argument("--threshold", type=float, default=0.9)
+    p.add_argument("--limit", type=float, default=600.0, help="stop after this many seconds")
+    p.add_argument("--seeds", default=None,
+                   help="run once per seed (0-4, 0-3,7), one after another, as NAME_sSEED")
+    p.add_argument("--goal", type=float, default=None,
+                   help="seconds: the summary counts the runs at the threshold within it")
+    p.add_argument("train_args", nargs=argparse.REMAINDER, help="-- then the train arguments")
+    a = p.parse_args(argv)
+    train_args = a.train_args[1:] if a.train_args[:1] == ["--"] else a.train_args
+    if not train_args:
+        p.error("give the train arguments after --")
+    if any(x == "--run-dir" or x.startswith("--run-dir=") for x in train_args):
+        p.error("--run-dir is DEST/NAME; leave it out of the train arguments")
+    seeds = None
+    if a.seeds is not None:
+        sys.path.insert(0, ROOT)
+        from dscpp_jax.seed_group import parse_seeds
+        try:
+            seeds = parse_seeds(a.seeds)
+        except ValueError as e:
+            p.error(str(e))
+        if any(x in ("--seed", "--seeds") or x.startswith(("--seed=", "--seeds="))
+               for x in train_args):
+            p.error("--seeds gives each run its --seed; leave --seed/--seeds out of the train "
+                    "arguments")
+    os.makedirs(a.dest, exist_ok=True)
+    runs = [(a.name, train_args)] if seeds is None else \
+        [(f"{a.name}_s{s}", [*train_args, "--seed", str(s)]) for s in seeds]
+    results = []
+    for name, targs in runs:
+        out = time_one(a.dest, name, targs, a.threshold, a.limit)
+        out["times"] = iteration_times(os.path.join(a.dest, name, "metrics.csv"))
+        print(json.dumps(out), flush=True)
+        results.append(out)
+        with open(os.path.join(a.dest, f"summary_{a.name}.json"), "w") as f:
+            json.dump(dict(threshold=a.threshold, goal_s=a.goal, runs=results), f, indent=1)
+        with open(os.path.join(a.dest, f"summary_{a.name}.md"), "w") as f:
+            f.write(summary_table(results, a.goal))
+    print(summary_table(results, a.goal))
+    return results
 
 
 if __name__ == "__main__":

@@ -64,3 +64,52 @@ def test_profile_startup_times_every_phase_up_to_the_one_asked(tmp_path):
     assert sorted(os.listdir(prof)) == ["accelerator_start.prof", "env_build.prof", "init.prof",
                                         "train_step__lower.prof", "train_step__trace.prof"]
     pstats.Stats(os.path.join(prof, "init.prof"))   # readable
+
+
+def test_iteration_times_split_the_warm_up_from_the_rest(tmp_path):
+    p = str(tmp_path / "metrics.csv")
+    with open(p, "w", newline="") as f:
+        w = csv.DictWriter(f, ["iteration", "wall_clock", "train/warmup"])
+        w.writeheader()
+        for it, wall, warm in [(1, 30.0, 1), (2, 31.0, 1), (3, 32.2, 1), (4, 33.5, 0),
+                               (5, 35.0, 0), (6, 36.4, 0)]:
+            w.writerow({"iteration": it, "wall_clock": wall, "train/warmup": warm})
+    # warm-up steps 1.0 and 1.2 s; after it 1.3, 1.5, 1.4 s (the row's own flag decides)
+    assert ttt.iteration_times(p) == dict(first_s=30.0, warmup_s=1.1, after_s=1.4)
+    assert ttt.iteration_times(str(tmp_path / "none.csv")) == dict(first_s=None, warmup_s=None,
+                                                                     after_s=None)
+
+
+def test_seeds_run_one_after_another_and_the_summary_counts_the_goal(tmp_path, monkeypatch):
+    calls = []
+
+    def fake_time_one(dest, name, train_args, threshold, limit):
+        calls.append((name, list(train_args)))
+        seed = int(train_args[-1])
+        hit = None if seed == 2 else dict(iteration=60 + seed, episodes=900 + seed,
+                                          loop_s=90.0 + 20 * seed, success=0.94,
+                                          command_s=100.0 + 20 * seed)
+        return dict(name=name, hit=hit, stopped_s=200.0,
+                    stopped_by="threshold" if hit else "limit")
+
+    monkeypatch.setattr(ttt, "time_one", fake_time_one)
+    dest = str(tmp_path / "d")
+    res = ttt.main(["--dest", dest, "--name", "u", "--seeds", "0-1,2", "--goal", "120",
+                    "--", "--env", "u_maze"])
+    assert calls == [(f"u_s{s}", ["--env", "u_maze", "--seed", str(s)]) for s in (0, 1, 2)]
+    assert [r["name"] for r in res] == ["u_s0", "u_s1", "u_s2"]
+    md = open(os.path.join(dest, "summary_u.md")).read()
+    assert "| u_s1 | - s | - / - | 61, 901 | 120 s |" in md
+    assert "not reached (stopped by limit at 200.0 s)" in md
+    assert "2 of 3 runs reached the threshold; command start to threshold 100-120 s, median 110 s; " \
+           "within 120 s: 2 of 3" in md
+    summary = json.load(open(os.path.join(dest, "summary_u.json")))
+    assert summary["goal_s"] == 120 and len(summary["runs"]) == 3
+
+
+def test_seeds_refuse_a_seed_in_the_train_arguments(tmp_path):
+    import pytest
+    with pytest.raises(SystemExit):
+        ttt.main(["--dest", str(tmp_path), "--name", "u", "--seeds", "0-1", "--", "--seed", "3"])
+    with pytest.raises(SystemExit):
+        ttt.main(["--dest", str(tmp_path), "--name", "u", "--seeds", "3-1", "--", "--env", "u_maze"])
