@@ -11,8 +11,10 @@ ARGS  ?=
 RUN   ?=
 SEEDS ?=
 FIG   ?= all
+THRESHOLD ?= 0.9
+LIMIT ?= 600
 
-.PHONY: install test train eval plot video reproduce bench-env bench-learners bench-options bench-seeds clean
+.PHONY: install test train eval plot video reproduce time-to-result bench-env bench-learners bench-options bench-seeds clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -48,6 +50,13 @@ video: $(STAMP)
 # table to experiments/results/paper. Re-run the same command to continue. See docs/training.md.
 reproduce: $(STAMP)
 	$(BIN)/python experiments/reproduce.py --fig $(FIG) $(ARGS)
+
+# Time to result (ant mazes, in-band evaluation): the seeds of SEEDS (0-4 unless given) one after
+# another, each stopped where its in-band success first reaches THRESHOLD or after LIMIT seconds;
+# run directories and a summary table (summary_ENV-ALGO.md) under runs/time_to_result.
+time-to-result: $(STAMP)
+	$(BIN)/python experiments/time_to_threshold.py --dest runs/time_to_result --name $(ENV)-$(ALGO) \
+	  --seeds $(or $(SEEDS),0-4) --threshold $(THRESHOLD) --limit $(LIMIT) -- --env $(ENV) --algo $(ALGO) $(ARGS)
 
 bench-env: $(STAMP)
 	$(BIN)/python experiments/bench_env.py $(ARGS)
