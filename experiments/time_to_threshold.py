@@ -91,7 +91,7 @@ def summary_table(rows, goal=None) -> str:
                    + (f"{h['iteration']}, {h['episodes']:,} | {h['command_s']:.0f} s |" if h else
                       f"not reached (stopped by {r.get('stopped_by')} at {r.get('stopped_s')} s) | - |"))
     secs = sorted(r["hit"]["command_s"] for r in rows if r.get("hit"))
-    line = f"\n{len(secs)} of {len(rows)} runs reached the threshold"
+    line = f"\n\n{len(secs)} of {len(rows)} runs reached the threshold"
     if secs:
         line += f"; command start to threshold {secs[0]:.0f}-{secs[-1]:.0f} s, median {statistics.median(secs):.0f} s"
     if goal is not None:
