@@ -61,18 +61,26 @@ def inband_window(run_dir: str):
     return c["inband_eval_window"] if c.get("inband_eval_window", 0) > 0 else c["inband_eval_envs"]
 
 
+def _dscpp_jax():
+    """Make the checkout's dscpp_jax importable (the script may run from any directory)."""
+    if ROOT not in sys.path:
+        sys.path.insert(0, ROOT)
+
+
 def iteration_times(metrics_path: str):
     """From a run's metrics.csv: when its first iteration ended (loop seconds) and the median
     seconds per iteration during the warm-up and after it (None where there are none)."""
+    _dscpp_jax()
+    from dscpp_jax.run_logging import read_metrics
     try:
-        with open(metrics_path) as f:
-            rows = list(csv.DictReader(f))
+        m = read_metrics(metrics_path)
     except OSError:
         return dict(first_s=None, warmup_s=None, after_s=None)
-    wall = [float(r["wall_clock"]) for r in rows]
+    wall = m.get("wall_clock", [])
+    flags = m.get("train/warmup", [0.0] * len(wall))
     warm, after = [], []
-    for prev, r, t in zip(wall, rows[1:], wall[1:]):
-        (warm if float(r.get("train/warmup") or 0) > 0 else after).append(t - prev)
+    for prev, t, flag in zip(wall, wall[1:], flags[1:]):
+        (warm if flag > 0 else after).append(t - prev)
     med = lambda xs: round(statistics.median(xs), 3) if xs else None
     return dict(first_s=round(wall[0], 1) if wall else None, warmup_s=med(warm), after_s=med(after))
 
@@ -154,7 +162,7 @@ def main(argv=None):
         p.error("--run-dir is DEST/NAME; leave it out of the train arguments")
     seeds = None
     if a.seeds is not None:
-        sys.path.insert(0, ROOT)
+        _dscpp_jax()
         from dscpp_jax.seed_group import parse_seeds
         try:
             seeds = parse_seeds(a.seeds)
