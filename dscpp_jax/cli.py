@@ -709,6 +709,16 @@ def cmd_diagnose(args) -> int:
     return 0
 
 
+def cmd_compare(args) -> int:
+    from dscpp_jax import compare
+    result = compare.compare(args.runs, levels=args.levels, mature=args.mature)
+    print(compare.format_table(result))
+    if args.json:
+        compare.write_json(result, args.json)
+        print(f"numbers: {args.json}")
+    return 0
+
+
 def cmd_train(args) -> int:
     if getattr(args, "seeds", None) is not None or _resumes_group(args) or _distributed(args):
         return cmd_train_group(args)
@@ -1007,6 +1017,20 @@ def build_parser() -> argparse.ArgumentParser:
                     help="run directories of finished runs; a seed group's directory stands for "
                          "its seeds")
     dg.set_defaults(func=cmd_diagnose)
+
+    cp = sub.add_parser("compare", help="settings side by side: final success, iterations to an "
+                        "in-band level, chain growth, falls and seconds per iteration of groups "
+                        "of runs, from metrics.csv and eval.json")
+    cp.add_argument("runs", nargs="+", metavar="[LABEL=]DIR",
+                    help="run or seed-group directories; entries with one LABEL are pooled "
+                         "into one column (a plain DIR is its own column, named after it)")
+    cp.add_argument("--levels", type=float, nargs="+", default=[0.1, 0.5, 0.9],
+                    help="in-band success levels: the first iteration each run reached them")
+    cp.add_argument("--mature", type=int, nargs="+", default=[1, 3, 5, 9],
+                    help="chain sizes: the first iteration with this many mature options")
+    cp.add_argument("--json", default=None, metavar="PATH",
+                    help="also write the numbers (per run and per column) as JSON")
+    cp.set_defaults(func=cmd_compare)
     return p
 
 
