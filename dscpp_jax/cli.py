@@ -1130,6 +1130,12 @@ def main(argv: Optional[list[str]] = None) -> int:
     except ValueError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    except BrokenPipeError:   # the reader of stdout left (`... | head`): stop quietly
+        try:   # no second BrokenPipeError when the interpreter flushes stdout at exit
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        except (OSError, ValueError, AttributeError):
+            pass
+        return 141
     except OSError as e:   # a file the command reads or writes; the message names which
         from dscpp_jax.run_logging import os_error_fix
         where = getattr(e, "filename", None) or "the run directory"

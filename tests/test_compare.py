@@ -101,3 +101,20 @@ def test_cli_compare_and_its_errors(tmp_path, capsys):
     (tmp_path / "empty").mkdir()
     with pytest.raises(ValueError, match="no metrics.csv"):
         C.compare([str(tmp_path / "empty")])
+
+
+def test_cli_output_cut_short_by_its_reader_is_no_error(tmp_path):
+    """`compare ... | head -1`: the reader leaves early; no traceback, no 'error:' about the disk."""
+    import subprocess
+    import sys
+    run = _run(tmp_path / "r", FAST, {"eval/success_rate": 1.0})
+    reader = subprocess.Popen(["head", "-c", "1"], stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+    # many labels make the table longer than the pipe's buffer, so the writer meets the closed pipe
+    labels = [f"x{i}={run}" for i in range(1500)]
+    writer = subprocess.run([sys.executable, "-m", "dscpp_jax.cli", "compare", *labels],
+                            stdout=reader.stdin, stderr=subprocess.PIPE, text=True, timeout=300)
+    reader.stdin.close()
+    assert reader.stdout.read() == b"|"
+    reader.wait()
+    assert writer.returncode == 141, writer.stderr
+    assert "error" not in writer.stderr.lower() and "Traceback" not in writer.stderr
