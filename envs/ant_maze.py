@@ -344,13 +344,15 @@ class AntMazeEnv(GoalMazeEnv):
             return jnp.zeros((), bool)
         return (data._impl.overflow & WARP_BUFFER_OVERFLOWS) != 0
 
-    def build_warp_kernels(self, device: Optional[str] = None) -> bool:
+    def build_warp_kernels(self, device: Optional[str] = None, workers: int = 0) -> bool:
         """Build MuJoCo Warp's kernels for this model now, outside JAX: one physics step of a
         one-world batch through MuJoCo Warp itself, on a Warp stream of its own (Warp compiles a
         kernel at its first launch and keeps it in its kernel cache; the JAX step finds it there).
         Safe to run in a thread while XLA compiles, since it never touches XLA's stream. ``device``:
-        a Warp device name (default: the first CUDA device). Returns False where there is nothing
-        to build (MJX-JAX physics, or no such device)."""
+        a Warp device name (default: the first CUDA device). ``workers``: the step's modules are
+        first found by a dry run and compiled on this many threads (`envs.warp_kernels`; 0: one
+        per CPU core, 1: one after another at their first launch). Returns False where there is
+        nothing to build (MJX-JAX physics, or no such device)."""
         if self.config.physics != "warp":
             return False
         import warp as wp
@@ -373,7 +375,10 @@ class AntMazeEnv(GoalMazeEnv):
                 d = mjwarp.make_data(self.mj_model, nworld=1,
                                      naconmax=self.config.warp_contacts_per_world,
                                      njmax=self.config.warp_constraints_per_world)
-                mjwarp.step(m, d)
+                if workers != 1:
+                    from envs.warp_kernels import load_modules, modules_launched
+                    load_modules(modules_launched(lambda: mjwarp.step(m, d)), workers)
+                mjwarp.step(m, d)   # loads whatever the dry run missed
             if stream is not None:
                 wp.synchronize_stream(stream)
         return True

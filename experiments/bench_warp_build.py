@@ -1,0 +1,88 @@
+"""MuJoCo Warp's kernel build from an empty kernel cache: one module after another at its first
+launch, against the step's modules found by a dry run and compiled on several threads
+(`envs.warp_kernels`, what `AntMazeEnv.build_warp_kernels` does by default).
+
+Each setting runs in a fresh process with an empty Warp kernel cache of its own, so every module
+is compiled (the first `--repeat` run of a setting is as cold as a new machine's; later ones
+are in new empty caches too):
+
+    python experiments/bench_warp_build.py --env u_maze --workers 1 0 --out bench_warp_build.json
+
+`--workers 0` is one thread per CPU core. On a machine without a CUDA device the build runs on
+Warp's CPU device. Prints a table and writes JSON (`--out`).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+CHILD = r"""
+import json, sys, time
+sys.path.insert(0, {root!r})
+import warp as wp
+wp.config.kernel_cache_dir = {cache!r}
+wp.config.quiet = True
+wp.init()
+import envs
+from envs.warp_kernels import default_workers, modules_launched
+env = envs.make({env!r}, physics="warp", warp_worlds=1)
+device = "cuda:0" if wp.is_cuda_available() else "cpu"
+t = time.perf_counter()
+env.build_warp_kernels(device, workers={workers})
+build = time.perf_counter() - t
+# how many modules the step loads (a dry run on the now loaded modules)
+from mujoco.mjx.third_party import mujoco_warp as mjwarp
+with wp.ScopedDevice(device):
+    m = mjwarp.put_model(env.mj_model)
+    d = mjwarp.make_data(env.mj_model, nworld=1, naconmax=env.config.warp_contacts_per_world,
+                         njmax=env.config.warp_constraints_per_world)
+    n = len(modules_launched(lambda: mjwarp.step(m, d)))
+print(json.dumps({{"device": wp.get_device(device).name, "build_s": round(build, 3), "modules": n,
+                  "workers": {workers} or default_workers()}}))
+"""
+
+
+def run_one(env: str, workers: int) -> dict:
+    with tempfile.TemporaryDirectory(prefix="warp_cache_") as cache:
+        code = CHILD.format(root=ROOT, cache=cache, env=env, workers=workers)
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+        if out.returncode != 0:
+            raise SystemExit(f"error: the build with --workers {workers} failed:\n{out.stderr[-3000:]}")
+        return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def main(argv=None) -> dict:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--env", default="u_maze")
+    p.add_argument("--workers", type=int, nargs="+", default=[1, 0],
+                   help="settings to compare (1: one module at a time at its launch, as Warp "
+                        "does by itself; 0: one thread per core)")
+    p.add_argument("--repeat", type=int, default=1)
+    p.add_argument("--out", default=None)
+    args = p.parse_args(argv)
+    if any(w < 0 for w in args.workers) or args.repeat < 1:
+        p.error("--workers are >= 0 and --repeat >= 1")
+    rows = []
+    for r in range(args.repeat):
+        for w in args.workers:
+            row = run_one(args.env, w)
+            row.update(setting=w, repeat=r)
+            rows.append(row)
+            print(f"workers {row['workers']:>3} ({'serial' if w == 1 else 'dry run + pool'}): "
+                  f"{row['build_s']:7.2f} s for {row['modules']} modules on {row['device']}",
+                  flush=True)
+    result = {"env": args.env, "cpu_count": os.cpu_count(), "runs": rows}
+    if args.out:
+        with open(args.out, "w") as f:
+            json.dump(result, f, indent=1)
+    return result
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,110 @@
+"""`envs.warp_kernels`: the dry run finds every Warp module MuJoCo Warp's step loads, launches
+nothing on its own thread and only there, and leaves Warp as it found it; `load_modules` loads
+them so that the real step has nothing left to build. On Warp's CPU device."""
+import threading
+
+import numpy as np
+import pytest
+
+from envs.ant_maze import warp_available
+
+pytestmark = pytest.mark.skipif(not warp_available(), reason="warp-lang is not installed")
+
+
+def _model_and_data():
+    import warp as wp
+    from mujoco.mjx.third_party import mujoco_warp as mjwarp
+
+    import envs
+    env = envs.make("u_maze", physics="warp", warp_worlds=1)
+    with wp.ScopedDevice("cpu"):
+        m = mjwarp.put_model(env.mj_model)
+        d = mjwarp.make_data(env.mj_model, nworld=1, naconmax=env.config.warp_contacts_per_world,
+                             njmax=env.config.warp_constraints_per_world)
+    return mjwarp, m, d
+
+
+def _loads_during(fn):
+    """The modules whose `load` `fn` calls, and those of them it had to build or load anew."""
+    import warp as wp
+    orig = wp.Module.load
+    asked, new = [], []
+
+    def load(self, device, block_dim=None, *a, **k):
+        before = len(self.execs)
+        out = orig(self, device, block_dim, *a, **k)
+        asked.append(self)
+        if len(self.execs) != before:
+            new.append(self)
+        return out
+
+    wp.Module.load = load
+    try:
+        fn()
+    finally:
+        wp.Module.load = orig
+    return asked, new
+
+
+def test_dry_run_finds_the_step_modules_and_load_modules_leaves_nothing_to_build():
+    import warp as wp
+
+    from envs.warp_kernels import load_modules, modules_launched
+    mjwarp, m, d = _model_and_data()
+    with wp.ScopedDevice("cpu"):
+        qpos, time0 = d.qpos.numpy().copy(), d.time.numpy().copy()
+        found = modules_launched(lambda: mjwarp.step(m, d))
+        # nothing ran: the state is where it was
+        np.testing.assert_array_equal(d.qpos.numpy(), qpos)
+        np.testing.assert_array_equal(d.time.numpy(), time0)
+        assert len(found) >= 10, found   # the ant's step: about 30 modules
+        mods = {id(x[0]) for x in found}
+
+        # without the parallel load, the real step builds (or reads from the cache) every module
+        for mod, _, _ in found:
+            mod.unload()
+        asked, new = _loads_during(lambda: mjwarp.step(m, d))
+        assert {id(x) for x in asked} <= mods, "the dry run missed a module the step loads"
+        assert len({id(x) for x in new}) == len(mods)
+
+        # with it, the real step has nothing left to load, and it did step
+        for mod, _, _ in found:
+            mod.unload()
+        assert load_modules(found, workers=2) == len(found)
+        t1 = float(d.time.numpy()[0])
+        asked, new = _loads_during(lambda: mjwarp.step(m, d))
+        assert asked and not new, [x.name for x in new]
+        assert float(d.time.numpy()[0]) > t1
+
+
+def test_dry_run_is_confined_to_its_thread_and_restores_warp():
+    import warp as wp
+
+    from envs import warp_kernels as W
+    from tests.warp_kernel_fixture import add_one
+    orig = (wp.Module.load, wp.capture_while, wp.capture_if)
+    mine = wp.zeros(4, dtype=float, device="cpu")
+    other = wp.zeros(4, dtype=float, device="cpu")
+
+    def fn():
+        wp.launch(add_one, dim=4, inputs=[mine], device="cpu")
+        t = threading.Thread(target=lambda: wp.launch(add_one, dim=4, inputs=[other], device="cpu"))
+        t.start()
+        t.join()
+        cond = wp.ones(1, dtype=wp.int32, device="cpu")   # would loop for ever if it were read
+        wp.capture_while(cond, while_body=lambda: wp.launch(add_one, dim=4, inputs=[mine],
+                                                               device="cpu"))
+
+    found = W.modules_launched(fn)
+    assert [x[0] for x in found] == [add_one.module]
+    np.testing.assert_array_equal(mine.numpy(), 0.0)    # this thread launched nothing
+    np.testing.assert_array_equal(other.numpy(), 1.0)   # the other thread's launch ran
+    assert (wp.Module.load, wp.capture_while, wp.capture_if) == orig
+
+    def boom():
+        raise RuntimeError("boom")
+    with pytest.raises(RuntimeError, match="boom"):
+        W.modules_launched(boom)
+    assert (wp.Module.load, wp.capture_while, wp.capture_if) == orig
+    wp.launch(add_one, dim=4, inputs=[mine], device="cpu")
+    np.testing.assert_array_equal(mine.numpy(), 1.0)
