@@ -9,7 +9,9 @@ are in new empty caches too):
     python experiments/bench_warp_build.py --env u_maze --workers 1 0 --out bench_warp_build.json
 
 `--workers 0` is one thread per CPU core. On a machine without a CUDA device the build runs on
-Warp's CPU device. Prints a table and writes JSON (`--out`).
+Warp's CPU device; `--arch 90` instead compiles the step's modules (found by the dry run) for that
+CUDA architecture with NVRTC, as a GPU host would, without a GPU (`warp.compile_aot_module`; the
+compile only, not the load onto a device). Prints a table and writes JSON (`--out`).
 """
 from __future__ import annotations
 
@@ -47,10 +49,42 @@ print(json.dumps({{"device": wp.get_device(device).name, "build_s": round(build,
                   "workers": {workers} or default_workers()}}))
 """
 
+CHILD_ARCH = r"""
+import json, sys, time
+from concurrent.futures import ThreadPoolExecutor
+sys.path.insert(0, {root!r})
+import warp as wp
+wp.config.kernel_cache_dir = {cache!r}
+wp.config.quiet = True
+wp.init()
+import envs
+from envs.warp_kernels import default_workers, modules_launched
+from mujoco.mjx.third_party import mujoco_warp as mjwarp
+env = envs.make({env!r}, physics="warp", warp_worlds=1)
+with wp.ScopedDevice("cpu"):
+    m = mjwarp.put_model(env.mj_model)
+    d = mjwarp.make_data(env.mj_model, nworld=1, naconmax=env.config.warp_contacts_per_world,
+                         njmax=env.config.warp_constraints_per_world)
+    mods = list({{id(x[0]): x[0] for x in modules_launched(lambda: mjwarp.step(m, d))}}.values())
+workers = {workers} or default_workers()
+def compile_one(mod):
+    wp.compile_aot_module(mod, arch={arch}, module_dir={cache!r} + "/aot", use_ptx=False)
+t = time.perf_counter()
+if workers <= 1:
+    for mod in mods:
+        compile_one(mod)
+else:
+    with ThreadPoolExecutor(workers) as pool:
+        list(pool.map(compile_one, mods))
+print(json.dumps({{"device": "NVRTC sm_{arch} (compile only)", "build_s": round(time.perf_counter() - t, 3),
+                  "modules": len(mods), "workers": workers}}))
+"""
 
-def run_one(env: str, workers: int) -> dict:
+
+def run_one(env: str, workers: int, arch: int = 0) -> dict:
     with tempfile.TemporaryDirectory(prefix="warp_cache_") as cache:
-        code = CHILD.format(root=ROOT, cache=cache, env=env, workers=workers)
+        code = (CHILD_ARCH.format(root=ROOT, cache=cache, env=env, workers=workers, arch=arch) if arch
+                else CHILD.format(root=ROOT, cache=cache, env=env, workers=workers))
         out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
         if out.returncode != 0:
             raise SystemExit(f"error: the build with --workers {workers} failed:\n{out.stderr[-3000:]}")
@@ -64,6 +98,8 @@ def main(argv=None) -> dict:
                    help="settings to compare (1: one module at a time at its launch, as Warp "
                         "does by itself; 0: one thread per core)")
     p.add_argument("--repeat", type=int, default=1)
+    p.add_argument("--arch", type=int, default=0,
+                   help="compile for this CUDA architecture with NVRTC instead (e.g. 90 for H100/H200)")
     p.add_argument("--out", default=None)
     args = p.parse_args(argv)
     if any(w < 0 for w in args.workers) or args.repeat < 1:
@@ -71,13 +107,13 @@ def main(argv=None) -> dict:
     rows = []
     for r in range(args.repeat):
         for w in args.workers:
-            row = run_one(args.env, w)
+            row = run_one(args.env, w, args.arch)
             row.update(setting=w, repeat=r)
             rows.append(row)
             print(f"workers {row['workers']:>3} ({'serial' if w == 1 else 'dry run + pool'}): "
                   f"{row['build_s']:7.2f} s for {row['modules']} modules on {row['device']}",
                   flush=True)
-    result = {"env": args.env, "cpu_count": os.cpu_count(), "runs": rows}
+    result = {"env": args.env, "arch": args.arch or None, "cpu_count": os.cpu_count(), "runs": rows}
     if args.out:
         with open(args.out, "w") as f:
             json.dump(result, f, indent=1)

@@ -108,3 +108,15 @@ def test_dry_run_is_confined_to_its_thread_and_restores_warp():
     assert (wp.Module.load, wp.capture_while, wp.capture_if) == orig
     wp.launch(add_one, dim=4, inputs=[mine], device="cpu")
     np.testing.assert_array_equal(mine.numpy(), 1.0)
+
+
+def test_bench_warp_build_rejects_bad_settings():
+    import importlib.util
+    import os
+    path = os.path.join(os.path.dirname(os.path.dirname(__file__)), "experiments", "bench_warp_build.py")
+    spec = importlib.util.spec_from_file_location("bench_warp_build", path)
+    B = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(B)
+    for argv in (["--workers", "-1"], ["--repeat", "0"]):
+        with pytest.raises(SystemExit):
+            B.main(argv)
