@@ -289,6 +289,12 @@ def train(cfg: Optional[Config] = None, run_dir: Optional[str] = None, resume: b
               f"slow. Use a point-mass twin (e.g. point_{cfg.env}) for CPU runs.", file=sys.stderr)
 
     key = jax.random.PRNGKey(cfg.seed)
+    # On MuJoCo Warp, Warp's kernels build in a thread while XLA compiles `init` and the step
+    # ahead of time; `init` runs once the thread is done (see `trainer.prewarm_physics`)
+    prewarm = T.prewarm_physics(cfg)
+    if prewarm is not None:
+        T.compile_ahead(key, cfg, initial_state)
+        prewarm.join()
     state = T.init(key, cfg) if initial_state is None else initial_state
     start_iter = 0
     if resume and ck.latest_step(run_dir) is not None:
@@ -330,11 +336,6 @@ def train(cfg: Optional[Config] = None, run_dir: Optional[str] = None, resume: b
         except Exception:  # noqa: BLE001
             pbar = None
     t_start = time.time()
-    # Warp's kernels build in a thread while XLA compiles the step ahead of time (after `init`)
-    prewarm = T.prewarm_physics(cfg)
-    if prewarm is not None:
-        T.train_step.lower(state).compile()
-        prewarm.join()
     wall0 = _previous_wall(run_dir)
     last_eval = float("nan")
     saved_iter = start_iter

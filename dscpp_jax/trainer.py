@@ -186,15 +186,21 @@ def step_env(config: Config):
 def prewarm_physics(config: Config) -> Optional[threading.Thread]:
     """On MuJoCo Warp with a GPU, start building Warp's kernels for `config`'s env in a thread
     (`AntMazeEnv.build_warp_kernels`, outside JAX) and return it; None elsewhere. Warp compiles a
-    kernel at its first launch, which otherwise comes only after XLA has compiled `train_step`;
-    this lets the two compilers work at once. Start it only once `init` has returned (MuJoCo Warp
-    launches from two threads at once crash, and `init` steps the env through it), and join it
-    before the first `train_step` runs (compile that ahead of time with
-    ``train_step.lower(state).compile()``). A failure here is left for the real step to report."""
+    kernel at its first launch, which otherwise comes only once XLA has compiled the program that
+    launches it; this lets the two compilers work at once. While the thread runs nothing else may
+    launch MuJoCo Warp (launches from two threads at once crash, and `init` steps the env through
+    it): compile ahead of time meanwhile (`compile_ahead`, or ``train_step.lower(state).compile()``
+    once the state exists) and join the thread before `init` or a step runs. Every env the run
+    uses is built before the thread starts. A failure here is left for the real step to report."""
     config = resolve_physics(config)
     if config.physics != "warp" or config.env.startswith("point_") or jax.default_backend() != "gpu":
         return None
-    env = step_env(config)   # built here: the env cache is no lock
+    # built here, before the thread: the env cache is no lock, and building an env allocates
+    # MuJoCo Warp data
+    make_env(config)
+    if config.inband_eval_envs > 0:
+        inband_env(config)
+    env = step_env(config)
 
     def work():
         try:
@@ -276,6 +282,18 @@ def init(key: jax.Array, config: Config) -> TrainState:
     config = resolve_physics(config.validate()).device_view()
     make_env(config)  # unknown env names fail here, not inside a trace
     return _init_jit(key, config)
+
+
+def compile_ahead(key: jax.Array, config: Config, state: Optional[TrainState] = None) -> None:
+    """XLA-compile `init(key, config)` and `train_step` on the shapes of its state, running
+    neither (nothing steps the physics, so MuJoCo Warp's kernels can build meanwhile in
+    `prewarm_physics`'s thread); the real calls then find their programs compiled. With `state`,
+    only `train_step`, on `state` (a run that starts from a given state)."""
+    if state is None:
+        config = resolve_physics(config.validate()).device_view()
+        _init_jit.lower(key, config).compile()
+        state = jax.eval_shape(_init_jit, key, config)
+    train_step.lower(state).compile()
 
 
 def init_impl(key: jax.Array, config: Config) -> TrainState:

@@ -1,9 +1,9 @@
 """Where a training run's first seconds go: the process start before the first iteration ends.
 
 Times, in one fresh process and in the order `dscpp_jax.cli train` does them: the imports, the
-accelerator's start, building the env, `init`, tracing and lowering `train_step`, compiling it
-(a cache hit when the persistent XLA cache holds it), Warp's kernel build or load, and the first
-iteration. Run it twice on the same cache directory to see a cold and a warm start:
+accelerator's start, building the env, compiling `init` ahead (a cache hit when the persistent XLA
+cache holds it) while Warp's kernel build starts in a thread, tracing, lowering and compiling
+`train_step`, what is left of Warp's kernel build, running `init`, and the first iteration. Run it twice on the same cache directory to see a cold and a warm start:
 
     python experiments/profile_startup.py --env u_maze --algo mb_dscpp --out cold.json
     python experiments/profile_startup.py --env u_maze --algo mb_dscpp --out warm.json
@@ -91,11 +91,12 @@ def main(argv=None) -> dict:
 
     with phase("env build"):
         T.make_env(cfg)
-    with phase("init (compile or cache load, run)"):
-        state = T.init(jax.random.PRNGKey(cfg.seed), cfg)
-        jax.block_until_ready(state)
-    if args.until != "init":
-        _step_phases(args, phase, T, cfg, state)
+    key = jax.random.PRNGKey(cfg.seed)
+    if args.until == "init":
+        with phase("init (compile or cache load, run)"):
+            jax.block_until_ready(T.init(key, cfg))
+    else:
+        _step_phases(args, phase, T, cfg, key)
 
     total = time.time() - T_PROCESS
     last = "second iteration" if args.until is None else f"train_step {args.until}" \
@@ -118,21 +119,31 @@ def main(argv=None) -> dict:
     return out
 
 
-def _step_phases(args, phase, T, cfg, state) -> None:
-    """train_step's trace, lower and compile, Warp's kernels, and two iterations (each timed)."""
+def _step_phases(args, phase, T, cfg, key) -> None:
+    """As `train` does on MuJoCo Warp: Warp's kernel build starts in a thread while XLA compiles
+    `init` and `train_step` ahead of time (`trainer.compile_ahead`, here split into its parts);
+    then `init` runs and two iterations (each timed)."""
     import jax
-    with phase("train_step: trace"):
+    cfg_dev = T.resolve_physics(cfg.validate()).device_view()
+    with phase("init: compile or cache load (ahead)"):
         prewarm = T.prewarm_physics(cfg)
-        traced = T.train_step.trace(state)
+        T._init_jit.lower(key, cfg_dev).compile()
+    with phase("train_step: trace"):
+        traced = T.train_step.trace(jax.eval_shape(T._init_jit, key, cfg_dev))
     with phase("train_step: lower"):
         lowered = traced.lower()
     if args.until == "lower":
+        if prewarm is not None:
+            prewarm.join()
         return
     with phase("train_step: compile or cache load"):
         compiled = lowered.compile()
-    with phase("Warp kernels (left after the compile)"):
+    with phase("Warp kernels (left after the compiles)"):
         if prewarm is not None:
             prewarm.join()
+    with phase("init (run)"):
+        state = T.init(key, cfg)
+        jax.block_until_ready(state)
     with phase("first iteration (run)"):
         state, m = compiled(state)
         jax.block_until_ready(m)

@@ -1,6 +1,7 @@
 """Building MuJoCo Warp's kernels while XLA compiles (`trainer.prewarm_physics`): the training
-loops compile their step ahead of time and wait for the kernel build before the first step,
-without compiling the step twice; `AntMazeEnv.build_warp_kernels` steps the model through MuJoCo
+loops compile ahead of time (a single run `init` and its step, `trainer.compile_ahead`; a group
+its step) and wait for the kernel build before anything runs the physics, without compiling
+anything twice; `AntMazeEnv.build_warp_kernels` steps the model through MuJoCo
 Warp outside JAX."""
 import threading
 
@@ -46,8 +47,9 @@ def test_loops_compile_ahead_and_wait_for_the_kernel_build(tmp_path, monkeypatch
         cfgs[0], [0, 1], str(tmp_path / "ga"), progress=False))
     ran, order = [], []
     monkeypatch.setattr(T, "prewarm_physics", lambda cfg: _started_thread(ran, order))
-    # the thread starts only once the run's state exists: `init` steps the env through MuJoCo
-    # Warp, and Warp launches from two threads at once crash (seen on a GPU with warm caches)
+    # `init` steps the env through MuJoCo Warp, and Warp launches from two threads at once crash
+    # (seen on a GPU with warm caches): a single run compiles `init` and the step ahead while the
+    # thread builds, and runs `init` after it; a group starts the thread once its states exist
     from dscpp_jax import seed_group as SG
     for mod, name in ((T, "init"), (SG, "init_group")):
         real = getattr(mod, name)
@@ -59,11 +61,12 @@ def test_loops_compile_ahead_and_wait_for_the_kernel_build(tmp_path, monkeypatch
         cfgs[1], [0, 1], str(tmp_path / "gb"), progress=False))
     assert ran == [1, 1] and [int(i) for i in states.counters.iteration] == [2, 2]
     # (init_group calls init once per seed)
-    assert order[:3] == ["init", "prewarm", "init_group"] and order[3:] == ["init", "init", "prewarm"], order
+    assert order[:2] == ["prewarm", "init"] and order[2:] == ["init_group", "init", "init", "prewarm"], order
     # the step programs: train_step_impl (single run), step (the group's shard_map body)
     def steps(names, step):
         return sum(n == f"jit({step})" for n in names)
     assert steps(plain, "train_step_impl") == steps(ahead, "train_step_impl") == 1
+    assert steps(plain, "init_impl") == steps(ahead, "init_impl") == 1
     assert steps(plain_group, "step") == steps(ahead_group, "step") == 1
 
 

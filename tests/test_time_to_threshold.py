@@ -57,13 +57,14 @@ def test_profile_startup_times_every_phase_up_to_the_one_asked(tmp_path):
                                 "--set", "num_envs=2", "--cprofile", prof, "--out", out])
     phases = list(res["phases_s"])
     assert phases == ["interpreter to script", "imports", "accelerator start (jax.devices)",
-                      "env build", "init (compile or cache load, run)", "train_step: trace",
+                      "env build", "init: compile or cache load (ahead)", "train_step: trace",
                       "train_step: lower"]
     assert all(v >= 0 for v in res["phases_s"].values())
     assert json.load(open(out))["phases_s"] == res["phases_s"]
-    assert sorted(os.listdir(prof)) == ["accelerator_start.prof", "env_build.prof", "init.prof",
+    assert sorted(os.listdir(prof)) == ["accelerator_start.prof", "env_build.prof",
+                                        "init__compile_or_cache_load.prof",
                                         "train_step__lower.prof", "train_step__trace.prof"]
-    pstats.Stats(os.path.join(prof, "init.prof"))   # readable
+    pstats.Stats(os.path.join(prof, "init__compile_or_cache_load.prof"))   # readable
 
 
 def test_iteration_times_split_the_warm_up_from_the_rest(tmp_path):
