@@ -120,3 +120,29 @@ def test_bench_warp_build_rejects_bad_settings():
     for argv in (["--workers", "-1"], ["--repeat", "0"]):
         with pytest.raises(SystemExit):
             B.main(argv)
+
+
+def test_build_covers_the_jax_step_of_many_worlds():
+    """`build_warp_kernels` steps one world; the jitted JAX step of several worlds (what training
+    runs) then finds every MuJoCo Warp physics module loaded (MJX's own JAX glue, whose kernels
+    are generic and typed at the call, aside)."""
+    import jax
+    import jax.numpy as jnp
+
+    import envs
+    from warp._src.context import user_modules
+    env = envs.make("u_maze", physics="warp", warp_worlds=3)
+    for mod in list(user_modules.values()):   # what earlier tests loaded in this process
+        mod.unload()
+    assert env.build_warp_kernels("cpu") is True
+
+    @jax.jit
+    def roll(keys, acts):
+        s = jax.vmap(env.reset)(keys)
+        return jax.lax.scan(lambda s, a: (jax.vmap(env.step)(s, a), None), s, acts)[0].obs
+
+    keys = jax.random.split(jax.random.key(0), 3)
+    acts = jnp.asarray(np.random.default_rng(0).uniform(-1, 1, (2, 3, 8)), jnp.float32)
+    asked, new = _loads_during(lambda: jax.block_until_ready(roll(keys, acts)))
+    physics = [x.name for x in new if not x.name.startswith("mujoco.mjx.warp.")]
+    assert asked and not physics, physics
