@@ -351,8 +351,8 @@ class AntMazeEnv(GoalMazeEnv):
         Safe to run in a thread while XLA compiles, since it never touches XLA's stream. ``device``:
         a Warp device name (default: the first CUDA device). ``workers``: the step's modules are
         first found by a dry run and compiled on this many threads (`envs.warp_kernels`; 0: one
-        per CPU core, 1: one after another at their first launch). Returns False where there is
-        nothing to build (MJX-JAX physics, or no such device)."""
+        per CPU core up to 16, 1: one after another at their first launch). Returns False where
+        there is nothing to build (MJX-JAX physics, or no such device)."""
         if self.config.physics != "warp":
             return False
         import warp as wp

@@ -69,12 +69,18 @@ def modules_launched(fn: Callable[[], Any]) -> list[tuple[Any, Any, Any]]:
     return list(seen.values())
 
 
+MAX_DEFAULT_WORKERS = 16
+"""Most compiles at once by default: each NVRTC compile holds up to about a gigabyte of host
+memory, and a many-GPU host may start one training process per GPU at the same time."""
+
+
 def default_workers() -> int:
-    """One compile per CPU core this process may use."""
+    """One compile per CPU core this process may use, at most `MAX_DEFAULT_WORKERS`."""
     try:
-        return max(1, len(os.sched_getaffinity(0)))
+        cores = len(os.sched_getaffinity(0))
     except AttributeError:   # not on Linux
-        return max(1, os.cpu_count() or 1)
+        cores = os.cpu_count() or 1
+    return max(1, min(cores, MAX_DEFAULT_WORKERS))
 
 
 def load_modules(modules: list[tuple[Any, Any, Any]], workers: int = 0) -> int:
