@@ -24,32 +24,7 @@ import tempfile
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
-CHILD = r"""
-import json, sys, time
-sys.path.insert(0, {root!r})
-import warp as wp
-wp.config.kernel_cache_dir = {cache!r}
-wp.config.quiet = True
-wp.init()
-import envs
-from envs.warp_kernels import default_workers, modules_launched
-env = envs.make({env!r}, physics="warp", warp_worlds=1)
-device = "cuda:0" if wp.is_cuda_available() else "cpu"
-t = time.perf_counter()
-env.build_warp_kernels(device, workers={workers})
-build = time.perf_counter() - t
-# how many modules the step loads (a dry run on the now loaded modules)
-from mujoco.mjx.third_party import mujoco_warp as mjwarp
-with wp.ScopedDevice(device):
-    m = mjwarp.put_model(env.mj_model)
-    d = mjwarp.make_data(env.mj_model, nworld=1, naconmax=env.config.warp_contacts_per_world,
-                         njmax=env.config.warp_constraints_per_world)
-    n = len(modules_launched(lambda: mjwarp.step(m, d)))
-print(json.dumps({{"device": wp.get_device(device).name, "build_s": round(build, 3), "modules": n,
-                  "workers": {workers} or default_workers()}}))
-"""
-
-CHILD_ARCH = r"""
+PREAMBLE = r"""
 import json, sys, time
 from concurrent.futures import ThreadPoolExecutor
 sys.path.insert(0, {root!r})
@@ -61,12 +36,30 @@ import envs
 from envs.warp_kernels import default_workers, modules_launched
 from mujoco.mjx.third_party import mujoco_warp as mjwarp
 env = envs.make({env!r}, physics="warp", warp_worlds=1)
-with wp.ScopedDevice("cpu"):
-    m = mjwarp.put_model(env.mj_model)
-    d = mjwarp.make_data(env.mj_model, nworld=1, naconmax=env.config.warp_contacts_per_world,
-                         njmax=env.config.warp_constraints_per_world)
-    mods = list({{id(x[0]): x[0] for x in modules_launched(lambda: mjwarp.step(m, d))}}.values())
 workers = {workers} or default_workers()
+
+def step_modules(device):
+    # the modules the step loads, by a dry run (nothing compiles)
+    with wp.ScopedDevice(device):
+        m = mjwarp.put_model(env.mj_model)
+        d = mjwarp.make_data(env.mj_model, nworld=1, naconmax=env.config.warp_contacts_per_world,
+                             njmax=env.config.warp_constraints_per_world)
+        return list({{id(x[0]): x[0] for x in modules_launched(lambda: mjwarp.step(m, d))}}.values())
+"""
+
+# the build itself, on the machine's first CUDA device or else Warp's CPU device
+CHILD = PREAMBLE + r"""
+device = "cuda:0" if wp.is_cuda_available() else "cpu"
+t = time.perf_counter()
+env.build_warp_kernels(device, workers={workers})
+build = time.perf_counter() - t
+print(json.dumps({{"device": wp.get_device(device).name, "build_s": round(build, 3),
+                  "modules": len(step_modules(device)), "workers": workers}}))
+"""
+
+# NVRTC's compile for a CUDA architecture only, on any machine
+CHILD_ARCH = PREAMBLE + r"""
+mods = step_modules("cpu")
 def compile_one(mod):
     wp.compile_aot_module(mod, arch={arch}, module_dir={cache!r} + "/aot", use_ptx=False)
 t = time.perf_counter()
