@@ -344,6 +344,22 @@ class AntMazeEnv(GoalMazeEnv):
             return jnp.zeros((), bool)
         return (data._impl.overflow & WARP_BUFFER_OVERFLOWS) != 0
 
+    def warp_one_world(self):
+        """A one-world MuJoCo Warp model and data of this env's model, on Warp's current device:
+        the env's solver options (those that pick kernels, e.g. ``warn_overflow``) and its
+        per-world contact and constraint sizes. What `build_warp_kernels` steps to build the
+        kernels; benchmarks and tests use it to step MuJoCo Warp outside JAX."""
+        from mujoco.mjx.third_party import mujoco_warp as mjwarp
+        m = mjwarp.put_model(self.mj_model)
+        impl = self.mjx_model.opt._impl
+        for f in dataclasses.fields(m.opt):
+            v = getattr(impl, f.name, None)
+            if isinstance(v, (bool, int, float)) and type(v) is type(getattr(m.opt, f.name)):
+                setattr(m.opt, f.name, v)
+        d = mjwarp.make_data(self.mj_model, nworld=1, naconmax=self.config.warp_contacts_per_world,
+                             njmax=self.config.warp_constraints_per_world)
+        return m, d
+
     def build_warp_kernels(self, device: Optional[str] = None, workers: int = 0) -> bool:
         """Build MuJoCo Warp's kernels for this model now, outside JAX: one physics step of a
         one-world batch through MuJoCo Warp itself, on a Warp stream of its own (Warp compiles a
@@ -365,16 +381,7 @@ class AntMazeEnv(GoalMazeEnv):
         with wp.ScopedDevice(dev):
             stream = wp.Stream(dev) if dev.is_cuda else None
             with wp.ScopedStream(stream) if stream is not None else contextlib.nullcontext():
-                m = mjwarp.put_model(self.mj_model)
-                # the scalar options the env's model runs with (e.g. warn_overflow) pick kernels
-                impl = self.mjx_model.opt._impl
-                for f in dataclasses.fields(m.opt):
-                    v = getattr(impl, f.name, None)
-                    if isinstance(v, (bool, int, float)) and type(v) is type(getattr(m.opt, f.name)):
-                        setattr(m.opt, f.name, v)
-                d = mjwarp.make_data(self.mj_model, nworld=1,
-                                     naconmax=self.config.warp_contacts_per_world,
-                                     njmax=self.config.warp_constraints_per_world)
+                m, d = self.warp_one_world()
                 if workers != 1:
                     from envs.warp_kernels import load_modules, modules_launched
                     load_modules(modules_launched(lambda: mjwarp.step(m, d)), workers)

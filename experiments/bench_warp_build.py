@@ -41,9 +41,7 @@ workers = {workers} or default_workers()
 def step_modules(device):
     # the modules the step loads, by a dry run (nothing compiles)
     with wp.ScopedDevice(device):
-        m = mjwarp.put_model(env.mj_model)
-        d = mjwarp.make_data(env.mj_model, nworld=1, naconmax=env.config.warp_contacts_per_world,
-                             njmax=env.config.warp_constraints_per_world)
+        m, d = env.warp_one_world()
         return list({{id(x[0]): x[0] for x in modules_launched(lambda: mjwarp.step(m, d))}}.values())
 """
 

@@ -18,9 +18,7 @@ def _model_and_data():
     import envs
     env = envs.make("u_maze", physics="warp", warp_worlds=1)
     with wp.ScopedDevice("cpu"):
-        m = mjwarp.put_model(env.mj_model)
-        d = mjwarp.make_data(env.mj_model, nworld=1, naconmax=env.config.warp_contacts_per_world,
-                             njmax=env.config.warp_constraints_per_world)
+        m, d = env.warp_one_world()
     return mjwarp, m, d
 
 
@@ -146,3 +144,25 @@ def test_build_covers_the_jax_step_of_many_worlds():
     asked, new = _loads_during(lambda: jax.block_until_ready(roll(keys, acts)))
     physics = [x.name for x in new if not x.name.startswith("mujoco.mjx.warp.")]
     assert asked and not physics, physics
+
+
+def test_warp_one_world_carries_the_env_solver_options_and_sizes():
+    import dataclasses
+
+    import warp as wp
+
+    import envs
+    env = envs.make("u_maze", physics="warp", warp_worlds=1)
+    with wp.ScopedDevice("cpu"):
+        m, d = env.warp_one_world()
+    impl = env.mjx_model.opt._impl
+    checked = 0
+    for f in dataclasses.fields(m.opt):
+        v = getattr(impl, f.name, None)
+        if isinstance(v, (bool, int, float)) and type(v) is type(getattr(m.opt, f.name)):
+            assert getattr(m.opt, f.name) == v, f.name
+            checked += 1
+    assert checked > 0
+    assert m.opt.warn_overflow == impl.warn_overflow
+    assert d.naconmax == env.config.warp_contacts_per_world
+    assert d.njmax == env.config.warp_constraints_per_world
