@@ -30,6 +30,7 @@ and option state, and a ring of the last finished outcomes); metrics `inband/*`.
 from __future__ import annotations
 
 import functools
+import sys
 import threading
 from typing import Any, Dict, Optional, Tuple
 
@@ -205,8 +206,9 @@ def prewarm_physics(config: Config) -> Optional[threading.Thread]:
     def work():
         try:
             env.build_warp_kernels()
-        except Exception:  # noqa: BLE001 - only a head start
-            pass
+        except Exception as e:  # noqa: BLE001 - only a head start: the first step builds them
+            print(f"warning: MuJoCo Warp's kernel build ahead of the first step failed "
+                  f"({type(e).__name__}: {e}); they build at the first step", file=sys.stderr)
 
     thread = threading.Thread(target=work, name="warp-kernel-build", daemon=True)
     thread.start()

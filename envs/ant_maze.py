@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import warnings
 from typing import Optional
 
 import jax
@@ -384,7 +385,13 @@ class AntMazeEnv(GoalMazeEnv):
                 m, d = self.warp_one_world()
                 if workers != 1:
                     from envs.warp_kernels import load_modules, modules_launched
-                    load_modules(modules_launched(lambda: mjwarp.step(m, d)), workers)
+                    try:
+                        mods = modules_launched(lambda: mjwarp.step(m, d))
+                    except Exception as e:  # noqa: BLE001 - the step below still builds them
+                        warnings.warn(f"MuJoCo Warp's kernels build one after another: the dry "
+                                      f"run of the step failed ({type(e).__name__}: {e})")
+                        mods = []
+                    load_modules(mods, workers)
                 mjwarp.step(m, d)   # loads whatever the dry run missed
             if stream is not None:
                 wp.synchronize_stream(stream)

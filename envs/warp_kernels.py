@@ -9,8 +9,10 @@ afterwards finds them loaded (and the next process finds them in Warp's kernel c
 
 The dry run relies on `warp.launch` returning without launching when its module's `load` returns
 nothing, and replaces `warp.capture_while` / `warp.capture_if` (whose conditions live on the device
-and would never change) by one pass through the loop body and both branches. Nothing else is
-touched, and only on the thread that runs the dry run; other threads load and launch as usual.
+and would never change) by one pass through the loop body and both branches, and
+`warp.get_suggested_block_size` on a CUDA device (which needs the kernel loaded) by a note of the
+kernel's module and a placeholder block size for the skipped launch. Nothing else is touched, and
+only on the thread that runs the dry run; other threads load and launch as usual.
 Whatever the dry run misses the real call still compiles, one module at a time.
 """
 from __future__ import annotations
@@ -23,6 +25,15 @@ from typing import Any, Callable
 _lock = threading.Lock()   # one dry run at a time (the patches are process wide)
 _local = threading.local()
 
+DRY_BLOCK_SIZE = (256, 1)
+"""What `warp.get_suggested_block_size` answers on a CUDA device during a dry run (block size,
+minimum grid size): only ever used to size a launch that is skipped."""
+
+
+def _is_cuda(device) -> bool:
+    import warp as wp
+    return wp.get_device(device).is_cuda
+
 
 def modules_launched(fn: Callable[[], Any]) -> list[tuple[Any, Any, Any]]:
     """Call `fn()` with this thread's Warp launches skipped; return the (module, device,
@@ -34,6 +45,7 @@ def modules_launched(fn: Callable[[], Any]) -> list[tuple[Any, Any, Any]]:
     with _lock:
         orig_load = module_cls.load
         orig_while, orig_if = wp.capture_while, wp.capture_if
+        orig_suggested = wp.get_suggested_block_size
         seen: dict[tuple, tuple] = {}
 
         def load(self, device, block_dim=None, *args, **kwargs):
@@ -57,8 +69,15 @@ def modules_launched(fn: Callable[[], Any]) -> list[tuple[Any, Any, Any]]:
                 return None
             return orig_if(condition, on_true=on_true, on_false=on_false, stream=stream, **kwargs)
 
+        def get_suggested_block_size(kernel, device=None):
+            if getattr(_local, "dry", False) and _is_cuda(device):
+                kernel.module.load(wp.get_device(device))   # noted, as the real call loads it
+                return DRY_BLOCK_SIZE
+            return orig_suggested(kernel, device)
+
         module_cls.load = load
         wp.capture_while, wp.capture_if = capture_while, capture_if
+        wp.get_suggested_block_size = get_suggested_block_size
         _local.dry = True
         try:
             fn()
@@ -66,6 +85,7 @@ def modules_launched(fn: Callable[[], Any]) -> list[tuple[Any, Any, Any]]:
             _local.dry = False
             module_cls.load = orig_load
             wp.capture_while, wp.capture_if = orig_while, orig_if
+            wp.get_suggested_block_size = orig_suggested
     return list(seen.values())
 
 

@@ -166,3 +166,35 @@ def test_warp_one_world_carries_the_env_solver_options_and_sizes():
     assert m.opt.warn_overflow == impl.warn_overflow
     assert d.naconmax == env.config.warp_contacts_per_world
     assert d.njmax == env.config.warp_constraints_per_world
+
+
+def test_dry_run_answers_get_suggested_block_size_on_cuda_without_loading(monkeypatch):
+    """On a CUDA device Warp's occupancy query loads the kernel's module (MuJoCo Warp's collision
+    asks it before a launch); in a dry run it notes the module and answers a placeholder. Tested
+    on the CPU device taken for a CUDA one."""
+    import warp as wp
+
+    from envs import warp_kernels
+    from tests.warp_kernel_fixture import add_one
+    monkeypatch.setattr(warp_kernels, "_is_cuda", lambda device: True)
+    answers = []
+    found = warp_kernels.modules_launched(
+        lambda: answers.append(wp.get_suggested_block_size(add_one, "cpu")))
+    assert answers == [warp_kernels.DRY_BLOCK_SIZE]
+    assert [m for m, _, _ in found] == [add_one.module]
+    # restored: outside the dry run the real query answers (on a CPU device: (1, 1))
+    monkeypatch.undo()
+    assert wp.get_suggested_block_size(add_one, "cpu") == (1, 1)
+
+
+def test_build_falls_back_to_the_plain_step_when_the_dry_run_fails(monkeypatch):
+    import envs
+    from envs import warp_kernels
+
+    def broken(fn):
+        raise RuntimeError("dry run broke")
+
+    monkeypatch.setattr(warp_kernels, "modules_launched", broken)
+    env = envs.make("u_maze", physics="warp", warp_worlds=1)
+    with pytest.warns(UserWarning, match="dry run of the step failed"):
+        assert env.build_warp_kernels("cpu", workers=2)
