@@ -262,8 +262,9 @@ def train(cfg: Optional[Config] = None, run_dir: Optional[str] = None, resume: b
     from dscpp_jax import checkpoint as ck
     from dscpp_jax import trainer as T
     from dscpp_jax.evaluate import evaluate
-    from dscpp_jax.run_logging import RunLogger, load_config, write_config
+    from dscpp_jax.run_logging import RunLogger, StartupClock, load_config, write_config
 
+    clock = StartupClock()
     if resume:
         if run_dir is None:
             raise ValueError("--resume needs the run directory to continue")
@@ -291,15 +292,22 @@ def train(cfg: Optional[Config] = None, run_dir: Optional[str] = None, resume: b
     key = jax.random.PRNGKey(cfg.seed)
     # On MuJoCo Warp, Warp's kernels build in a thread while XLA compiles `init` and the step
     # ahead of time; `init` runs once the thread is done (see `trainer.prewarm_physics`)
+    clock.mark("set-up")
     prewarm = T.prewarm_physics(cfg)
+    clock.mark("env build")
     if prewarm is not None:
         T.compile_ahead(key, cfg, initial_state)
+        clock.mark("XLA compile ahead (init, train_step)")
         prewarm.join()
+        clock.mark("MuJoCo Warp kernels left")
     state = T.init(key, cfg) if initial_state is None else initial_state
+    jax.block_until_ready(state)
+    clock.mark("init")
     start_iter = 0
     if resume and ck.latest_step(run_dir) is not None:
         # the newest checkpoint that restores; damaged newer ones are reported and set aside
         state = ck.restore_state(run_dir, state, set_aside_broken=True)
+        clock.mark("restore")
         start_iter = int(state.counters.iteration)
         print(f"resumed {run_dir} at iteration {start_iter} "
               f"({int(state.counters.env_steps)} env steps)", file=sys.stderr)
@@ -340,6 +348,8 @@ def train(cfg: Optional[Config] = None, run_dir: Optional[str] = None, resume: b
     last_eval = float("nan")
     saved_iter = start_iter
     warned = set()   # chain warnings already printed (chain_warnings kinds)
+    clock.mark("set-up")
+    first = True
     try:
         while not _schedule_done(cfg, state):
             if max_iterations is not None and int(state.counters.iteration) - start_iter >= max_iterations:
@@ -349,6 +359,12 @@ def train(cfg: Optional[Config] = None, run_dir: Optional[str] = None, resume: b
             state, m = T.train_step(state)
             m = {k: float(v) for k, v in jax.device_get(m).items()}
             dt = time.time() - t0
+            if first:
+                first = False
+                clock.mark("first iteration")
+                _write_startup(clock, run_dir, pbar, iteration=int(state.counters.iteration),
+                               resumed_at_iteration=start_iter, physics=cfg.physics,
+                               device=str(jax.devices()[0].device_kind))
             bad = _check_finite(m)
             if bad:
                 it = int(prev.counters.iteration)
@@ -425,6 +441,16 @@ def train(cfg: Optional[Config] = None, run_dir: Optional[str] = None, resume: b
         if old_handler is not None:
             signal.signal(signal.SIGINT, old_handler)
     return state, run_dir
+
+
+def _write_startup(clock, run_dir: str, pbar=None, **extra) -> None:
+    """Record the command's start-up in run_dir/startup.json and say it in one line."""
+    try:
+        clock.write(run_dir, **extra)
+        where = f"; {os.path.join(run_dir, 'startup.json')}"
+    except OSError as e:
+        where = f" (startup.json not written: {e})"
+    (pbar.write if pbar is not None else print)(clock.line() + where, file=sys.stderr)
 
 
 def _write_error(run_dir: str, e: OSError, what: str, resume: bool = False, note: str = ""):

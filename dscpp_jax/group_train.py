@@ -156,8 +156,10 @@ def train_group(cfg: Config, seeds: Sequence[int], group_dir: Optional[str] = No
     from dscpp_jax import trainer as T
     from dscpp_jax.cli import (INBAND_LINE_EVERY, TrainingDiverged, _check_finite, _is_ant,
                                _main_thread, _previous_wall, chain_warnings)
-    from dscpp_jax.run_logging import RunLogger, read_config, write_config
+    from dscpp_jax.cli import _write_startup
+    from dscpp_jax.run_logging import RunLogger, StartupClock, read_config, write_config
 
+    clock = StartupClock()
     seeds = tuple(int(s) for s in seeds)
     n = len(seeds)
     mesh = SG.seed_mesh() if mesh is None else mesh
@@ -178,11 +180,15 @@ def train_group(cfg: Config, seeds: Sequence[int], group_dir: Optional[str] = No
         print(f"WARNING: {cfg.env} is an MJX ant environment meant for a GPU; on a CPU it is very "
               f"slow. Use a point-mass twin (e.g. point_{cfg.env}) for CPU runs.", file=sys.stderr)
 
+    clock.mark("set-up")
     states = SG.init_group(seeds, cfg, mesh)
+    jax.block_until_ready(states)
+    clock.mark("env build and init")
     ckpt = SG.GroupCheckpointer(group_dir, keep=cfg.keep_checkpoints)
     restored = resume and ckpt.latest_step() is not None
     if restored:
         states = ckpt.restore(states, mesh)
+        clock.mark("restore")
     c = SG.to_host(states.counters)
     env_steps = np.asarray(c.env_steps, float)
     episodes = np.asarray(c.episodes, float)
@@ -222,11 +228,15 @@ def train_group(cfg: Config, seeds: Sequence[int], group_dir: Optional[str] = No
     t_start = time.time()
     # Warp's kernels build in a thread while XLA compiles the group step ahead of time (after
     # `init_group`; see `trainer.prewarm_physics`)
+    clock.mark("set-up")
     prewarm = T.prewarm_physics(cfg.override(group_size=n))
     if prewarm is not None:
         fn, placed, all_active = SG.group_step_program(states, mesh)
         fn.lower(placed, all_active).compile()
+        clock.mark("XLA compile ahead (group step)")
         prewarm.join()
+        clock.mark("MuJoCo Warp kernels left")
+    first = True
     last_eval = np.full((n,), np.nan)
     warned = [set() for _ in range(n)]   # chain warnings printed, per seed (each kind once)
     inband = np.full((n,), np.nan)     # in-band success per seed (NaN: none finished yet)
@@ -246,6 +256,14 @@ def train_group(cfg: Config, seeds: Sequence[int], group_dir: Optional[str] = No
             states, m = SG.train_step_group(states, active, mesh)
             m = {k: np.asarray(v, float) for k, v in SG.to_host(m).items()}
             dt = time.time() - t0
+            if first:
+                first = False
+                clock.mark("first iteration")
+                if lead:
+                    _write_startup(clock, group_dir, pbar, group_iteration=group_it + 1,
+                                   resumed_at_iteration=start_iter, seeds=list(seeds),
+                                   physics=T.resolve_physics(cfg).physics,
+                                   device=str(jax.devices()[0].device_kind))
             bad = {seeds[i]: b for i in range(n) if active[i]
                    for b in [_check_finite({k: v[i] for k, v in m.items()})] if b}
             if bad:

@@ -12,6 +12,7 @@ import platform
 import subprocess
 import sys
 import tempfile
+import time
 import uuid
 from typing import Any, Mapping, Optional
 
@@ -65,6 +66,74 @@ def atomic_write(path: str, text: str) -> None:
         except OSError:
             pass
         raise
+
+
+STARTUP_FILE = "startup.json"
+
+
+def process_age_s() -> Optional[float]:
+    """Seconds since this process started (Linux, from /proc); None where that is not known."""
+    try:
+        with open("/proc/self/stat") as f:
+            stat = f.read()
+        with open("/proc/uptime") as f:
+            uptime = float(f.read().split()[0])
+        start_ticks = int(stat[stat.rindex(")") + 2:].split()[19])   # field 22: starttime
+        return max(0.0, uptime - start_ticks / os.sysconf("SC_CLK_TCK"))
+    except (OSError, ValueError, IndexError, AttributeError):
+        return None
+
+
+class StartupClock:
+    """Where a training command's start goes, up to the end of its first iteration: the process's
+    age when the clock starts (interpreter, imports and whatever ran before) and named phases
+    timed one after another (`mark` closes the phase that ran since the last mark). `write`
+    appends one record per command to the run directory's startup.json (a resumed run adds one)."""
+
+    def __init__(self):
+        self.before_s = process_age_s()
+        self.started = time.time()
+        self._last = self.started
+        self.phases: dict = {}
+
+    def mark(self, name: str) -> None:
+        now = time.time()
+        self.phases[name] = self.phases.get(name, 0.0) + (now - self._last)
+        self._last = now
+
+    def record(self, **extra) -> dict:
+        timed = sum(self.phases.values())
+        rec = {"started": time.strftime("%Y-%m-%dT%H:%M:%S", time.localtime(self.started)),
+               "process_start_to_clock_s": None if self.before_s is None else round(self.before_s, 3),
+               "phases_s": {k: round(v, 3) for k, v in self.phases.items()},
+               "command_to_first_iteration_s": round(timed + (self.before_s or 0.0), 3)}
+        rec.update(extra)
+        return rec
+
+    def line(self) -> str:
+        """One line for the terminal: the total and the phases over a second."""
+        rec = self.record()
+        parts = ([f"process start {rec['process_start_to_clock_s']:.1f} s"]
+                 if rec["process_start_to_clock_s"] is not None else [])
+        parts += [f"{k} {v:.1f} s" for k, v in rec["phases_s"].items() if v >= 1.0]
+        return (f"start-up: {rec['command_to_first_iteration_s']:.1f} s to the end of the first "
+                f"iteration ({', '.join(parts)})")
+
+    def write(self, run_dir: str, **extra) -> dict:
+        """Append this command's record to run_dir/startup.json (a damaged file starts anew)."""
+        path = os.path.join(run_dir, STARTUP_FILE)
+        records = []
+        try:
+            with open(path) as f:
+                records = json.load(f)
+            if not isinstance(records, list):
+                records = []
+        except (OSError, ValueError):
+            records = []
+        rec = self.record(**extra)
+        records.append(rec)
+        atomic_write(path, json.dumps(records, indent=1))
+        return rec
 
 
 def _csv_text(rows) -> str:

@@ -85,16 +85,30 @@ def iteration_times(metrics_path: str):
     return dict(first_s=round(wall[0], 1) if wall else None, warmup_s=med(warm), after_s=med(after))
 
 
+def startup_of(run_dir: str):
+    """The run's first start-up record (its startup.json, written by `train` after the first
+    iteration), or None where there is none."""
+    try:
+        with open(os.path.join(run_dir, "startup.json")) as f:
+            records = json.load(f)
+        return records[0] if isinstance(records, list) and records else None
+    except (OSError, ValueError):
+        return None
+
+
 def summary_table(rows, goal=None) -> str:
     """A Markdown table of time_to_threshold results (one dict per run: name, hit, times)."""
     def f(x, fmt):
         return "-" if x is None else format(x, fmt)
-    out = ["| run | first iteration ends (loop) | s / iteration (warm-up / after) | "
-           "threshold: iteration, episodes | command start to threshold |",
-           "|---|---|---|---|---|"]
+    out = ["| run | command to the first iteration's end | first iteration ends (loop) | "
+           "s / iteration (warm-up / after) | threshold: iteration, episodes | "
+           "command start to threshold |",
+           "|---|---|---|---|---|---|"]
     for r in rows:
         h, t = r.get("hit"), r.get("times") or {}
-        out.append(f"| {r['name']} | {f(t.get('first_s'), '.1f')} s | {f(t.get('warmup_s'), '.2f')} / "
+        st = (r.get("startup") or {}).get("command_to_first_iteration_s")
+        out.append(f"| {r['name']} | {f(st, '.1f')} s | {f(t.get('first_s'), '.1f')} s | "
+                   f"{f(t.get('warmup_s'), '.2f')} / "
                    f"{f(t.get('after_s'), '.2f')} | "
                    + (f"{h['iteration']}, {h['episodes']:,} | {h['command_s']:.0f} s |" if h else
                       f"not reached (stopped by {r.get('stopped_by')} at {r.get('stopped_s')} s) | - |"))
@@ -179,6 +193,7 @@ def main(argv=None):
     for name, targs in runs:
         out = time_one(a.dest, name, targs, a.threshold, a.limit)
         out["times"] = iteration_times(os.path.join(a.dest, name, "metrics.csv"))
+        out["startup"] = startup_of(os.path.join(a.dest, name))
         print(json.dumps(out), flush=True)
         results.append(out)
         with open(os.path.join(a.dest, f"summary_{a.name}.json"), "w") as f:

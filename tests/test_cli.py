@@ -48,6 +48,11 @@ def test_cli_train_resume_interrupt_eval_plot(tmp_path, monkeypatch, capsys):
     final = json.load(open(os.path.join(run, "eval.json")))
     assert final["iteration"] == 2 and final["seed"] == 0 and final["env_steps"] == 160
     assert 0.0 <= final["eval/success_rate"] <= 1.0
+    # the start-up is recorded: one record per command, up to its first iteration
+    st = json.load(open(os.path.join(run, "startup.json")))
+    assert len(st) == 1 and st[0]["resumed_at_iteration"] == 0 and st[0]["iteration"] == 1
+    assert {"init", "first iteration"} <= set(st[0]["phases_s"])
+    assert st[0]["command_to_first_iteration_s"] >= sum(st[0]["phases_s"].values()) - 1e-2
     # and the run's last line says why its chain ends where it does (diagnose's verdict)
     out = capsys.readouterr().out
     from dscpp_jax import diagnose
@@ -69,6 +74,9 @@ def test_cli_train_resume_interrupt_eval_plot(tmp_path, monkeypatch, capsys):
     assert rc == 0
     assert ck.latest_step(run) == 4
     assert read_metrics(run)["iteration"] == [1.0, 2.0, 3.0, 4.0]
+    st = json.load(open(os.path.join(run, "startup.json")))
+    assert len(st) == 2 and st[1]["resumed_at_iteration"] == 2 and st[1]["iteration"] == 3
+    assert "restore" in st[1]["phases_s"]
     monkeypatch.setattr(T, "train_step", real)
     rc = main(["train", "--resume", run, "--total-steps", "400", "--no-progress"])
     assert rc == 0 and ck.latest_step(run) == 5

@@ -145,6 +145,8 @@ def test_group_equals_separate_runs(ref, tmp_path):
         assert ev_a["seed"] == s and ev_a["iteration"] == 6
     gj = json.load(open(os.path.join(ref, "group.json")))
     assert gj["seeds"] == [0, 1] and gj["mesh"] == {"seeds": 1} and "jax" in gj["versions"]
+    st = json.load(open(os.path.join(ref, "startup.json")))   # the group's start, once
+    assert len(st) == 1 and st[0]["seeds"] == [0, 1] and "first iteration" in st[0]["phases_s"]
     assert json.load(open(os.path.join(ref, "s1", "config.json")))["config"]["seed"] == 1
     assert not os.path.exists(os.path.join(ref, "s0", "checkpoints"))   # one group checkpoint
 

@@ -100,12 +100,28 @@ def test_seeds_run_one_after_another_and_the_summary_counts_the_goal(tmp_path, m
     assert calls == [(f"u_s{s}", ["--env", "u_maze", "--seed", str(s)]) for s in (0, 1, 2)]
     assert [r["name"] for r in res] == ["u_s0", "u_s1", "u_s2"]
     md = open(os.path.join(dest, "summary_u.md")).read()
-    assert "| u_s1 | - s | - / - | 61, 901 | 120 s |" in md
+    assert "| u_s1 | - s | - s | - / - | 61, 901 | 120 s |" in md
     assert "not reached (stopped by limit at 200.0 s)" in md
     assert "2 of 3 runs reached the threshold; command start to threshold 100-120 s, median 110 s; " \
            "within 120 s: 2 of 3" in md
     summary = json.load(open(os.path.join(dest, "summary_u.json")))
     assert summary["goal_s"] == 120 and len(summary["runs"]) == 3
+
+
+def test_the_summary_shows_the_start_up_that_train_recorded(tmp_path):
+    run = tmp_path / "u_s0"
+    run.mkdir()
+    assert ttt.startup_of(str(run)) is None
+    (run / "startup.json").write_text(json.dumps([
+        {"command_to_first_iteration_s": 53.8, "phases_s": {"first iteration": 1.1}},
+        {"command_to_first_iteration_s": 20.0, "phases_s": {}}]))   # a resume's record follows
+    st = ttt.startup_of(str(run))
+    assert st["command_to_first_iteration_s"] == 53.8
+    row = dict(name="u_s0", startup=st, times=dict(first_s=1.1, warmup_s=1.02, after_s=1.2),
+               hit=dict(iteration=72, episodes=912, command_s=141.1))
+    assert "| u_s0 | 53.8 s | 1.1 s | 1.02 / 1.20 | 72, 912 | 141 s |" in ttt.summary_table([row])
+    (run / "startup.json").write_text("[")
+    assert ttt.startup_of(str(run)) is None
 
 
 def test_seeds_refuse_a_seed_in_the_train_arguments(tmp_path):

@@ -1,0 +1,43 @@
+"""`run_logging.StartupClock`: the phases of a command's start add up, records append, and the
+process's age comes from /proc where there is one."""
+import json
+import os
+import sys
+import time
+
+import pytest
+
+from dscpp_jax.run_logging import STARTUP_FILE, StartupClock, process_age_s
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_process_age_grows_with_the_process():
+    a = process_age_s()
+    time.sleep(0.05)
+    b = process_age_s()
+    assert a is not None and 0.0 < a <= b
+    assert b - a < 5.0
+
+
+def test_phases_add_up_and_records_append(tmp_path, monkeypatch):
+    monkeypatch.setattr("dscpp_jax.run_logging.process_age_s", lambda: 2.0)
+    clock = StartupClock()
+    time.sleep(0.02)
+    clock.mark("a")
+    clock.mark("b")
+    time.sleep(0.02)
+    clock.mark("a")   # a phase marked twice adds up
+    rec = clock.write(str(tmp_path), iteration=1)
+    assert set(rec["phases_s"]) == {"a", "b"} and rec["phases_s"]["a"] >= 0.03
+    assert rec["process_start_to_clock_s"] == 2.0
+    assert rec["command_to_first_iteration_s"] == pytest.approx(
+        2.0 + sum(rec["phases_s"].values()), abs=2e-3)
+    assert "to the end of the first iteration" in clock.line() and "process start 2.0 s" in clock.line()
+    StartupClock().write(str(tmp_path), iteration=7)
+    recs = json.load(open(tmp_path / STARTUP_FILE))
+    assert [r["iteration"] for r in recs] == [1, 7]
+    # a damaged file starts anew rather than failing the run
+    (tmp_path / STARTUP_FILE).write_text("{not json")
+    StartupClock().write(str(tmp_path), iteration=9)
+    assert [r["iteration"] for r in json.load(open(tmp_path / STARTUP_FILE))] == [9]
+    assert not [f for f in os.listdir(tmp_path) if f.startswith(".")]   # no temporary left
