@@ -30,6 +30,7 @@ and option state, and a ring of the last finished outcomes); metrics `inband/*`.
 from __future__ import annotations
 
 import functools
+import os
 import sys
 import threading
 from typing import Any, Dict, Optional, Tuple
@@ -184,6 +185,26 @@ def step_env(config: Config):
     return make_env(config)
 
 
+WARP_BUILD_WORKERS_ENV = "DSCPP_JAX_WARP_BUILD_WORKERS"
+
+
+def warp_build_workers() -> int:
+    """How many MuJoCo Warp modules `prewarm_physics` compiles at once: $DSCPP_JAX_WARP_BUILD_WORKERS
+    (1: one after another, as Warp alone would) or 0, one per CPU core up to 16
+    (`envs.warp_kernels.default_workers`)."""
+    text = os.environ.get(WARP_BUILD_WORKERS_ENV, "").strip()
+    if not text:
+        return 0
+    try:
+        n = int(text)
+    except ValueError:
+        n = -1
+    if n < 0:
+        raise ValueError(f"${WARP_BUILD_WORKERS_ENV}={text!r}: give a whole number of threads "
+                         f"(0: one per CPU core up to 16; 1: one module after another)")
+    return n
+
+
 def prewarm_physics(config: Config) -> Optional[threading.Thread]:
     """On MuJoCo Warp with a GPU, start building Warp's kernels for `config`'s env in a thread
     (`AntMazeEnv.build_warp_kernels`, outside JAX) and return it; None elsewhere. Warp compiles a
@@ -194,6 +215,7 @@ def prewarm_physics(config: Config) -> Optional[threading.Thread]:
     once the state exists) and join the thread before `init` or a step runs. Every env the run
     uses is built before the thread starts. A failure here is left for the real step to report."""
     config = resolve_physics(config)
+    workers = warp_build_workers()   # a bad setting is an error wherever it is read
     if config.physics != "warp" or config.env.startswith("point_") or jax.default_backend() != "gpu":
         return None
     # built here, before the thread: the env cache is no lock, and building an env allocates
@@ -205,7 +227,7 @@ def prewarm_physics(config: Config) -> Optional[threading.Thread]:
 
     def work():
         try:
-            env.build_warp_kernels()
+            env.build_warp_kernels(workers=workers)
         except Exception as e:  # noqa: BLE001 - only a head start: the first step builds them
             print(f"warning: MuJoCo Warp's kernel build ahead of the first step failed "
                   f"({type(e).__name__}: {e}); they build at the first step", file=sys.stderr)

@@ -81,3 +81,16 @@ def test_build_warp_kernels_steps_the_model_outside_jax():
     if jax.default_backend() != "gpu":
         import warp as wp
         assert env.build_warp_kernels() is wp.is_cuda_available()
+
+
+def test_warp_build_workers_come_from_the_environment(monkeypatch):
+    monkeypatch.delenv(T.WARP_BUILD_WORKERS_ENV, raising=False)
+    assert T.warp_build_workers() == 0
+    monkeypatch.setenv(T.WARP_BUILD_WORKERS_ENV, " 4 ")
+    assert T.warp_build_workers() == 4
+    for bad in ("four", "-1", "2.5"):
+        monkeypatch.setenv(T.WARP_BUILD_WORKERS_ENV, bad)
+        with pytest.raises(ValueError, match="whole number of threads"):
+            T.warp_build_workers()
+        with pytest.raises(ValueError, match="whole number of threads"):
+            T.prewarm_physics(tiny())   # read before anything is built, on any platform
