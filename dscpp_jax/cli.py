@@ -264,7 +264,7 @@ def train(cfg: Optional[Config] = None, run_dir: Optional[str] = None, resume: b
     from dscpp_jax.evaluate import evaluate
     from dscpp_jax.run_logging import RunLogger, StartupClock, load_config, write_config
 
-    clock = StartupClock()
+    clock = StartupClock(count_process=_FROM_COMMAND_LINE)
     if resume:
         if run_dir is None:
             raise ValueError("--resume needs the run directory to continue")
@@ -1146,7 +1146,14 @@ def deterministic_choice(args) -> bool:
     return deterministic_default(args) if on is None else on
 
 
+_FROM_COMMAND_LINE = False
+"""Set by `main()` run as the process's command (no argv given): only then does a start-up
+record count the process's own start (interpreter, imports) as part of the command."""
+
+
 def main(argv: Optional[list[str]] = None) -> int:
+    global _FROM_COMMAND_LINE
+    _FROM_COMMAND_LINE = argv is None
     args = build_parser().parse_args(argv)
     if hasattr(args, "deterministic"):
         use_xla_flags(deterministic_choice(args))

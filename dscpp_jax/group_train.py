@@ -156,10 +156,10 @@ def train_group(cfg: Config, seeds: Sequence[int], group_dir: Optional[str] = No
     from dscpp_jax import trainer as T
     from dscpp_jax.cli import (INBAND_LINE_EVERY, TrainingDiverged, _check_finite, _is_ant,
                                _main_thread, _previous_wall, chain_warnings)
-    from dscpp_jax.cli import _write_startup
+    from dscpp_jax import cli
     from dscpp_jax.run_logging import RunLogger, StartupClock, read_config, write_config
 
-    clock = StartupClock()
+    clock = StartupClock(count_process=cli._FROM_COMMAND_LINE)
     seeds = tuple(int(s) for s in seeds)
     n = len(seeds)
     mesh = SG.seed_mesh() if mesh is None else mesh
@@ -260,7 +260,7 @@ def train_group(cfg: Config, seeds: Sequence[int], group_dir: Optional[str] = No
                 first = False
                 clock.mark("first iteration")
                 if lead:
-                    _write_startup(clock, group_dir, pbar, group_iteration=group_it + 1,
+                    cli._write_startup(clock, group_dir, pbar, group_iteration=group_it + 1,
                                    resumed_at_iteration=start_iter, seeds=list(seeds),
                                    physics=T.resolve_physics(cfg).physics,
                                    device=str(jax.devices()[0].device_kind))

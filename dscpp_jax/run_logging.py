@@ -85,13 +85,14 @@ def process_age_s() -> Optional[float]:
 
 
 class StartupClock:
-    """Where a training command's start goes, up to the end of its first iteration: the process's
-    age when the clock starts (interpreter, imports and whatever ran before) and named phases
-    timed one after another (`mark` closes the phase that ran since the last mark). `write`
-    appends one record per command to the run directory's startup.json (a resumed run adds one)."""
+    """Where a training command's start goes, up to the end of its first iteration: with
+    ``count_process``, the process's age when the clock starts (interpreter and imports: for a
+    process that is the command), and named phases timed one after another (`mark` closes the
+    phase that ran since the last mark). `write` appends one record per command to the run
+    directory's startup.json (a resumed run adds one)."""
 
-    def __init__(self):
-        self.before_s = process_age_s()
+    def __init__(self, count_process: bool = True):
+        self.before_s = process_age_s() if count_process else None
         self.started = time.time()
         self._last = self.started
         self.phases: dict = {}

@@ -41,3 +41,16 @@ def test_phases_add_up_and_records_append(tmp_path, monkeypatch):
     StartupClock().write(str(tmp_path), iteration=9)
     assert [r["iteration"] for r in json.load(open(tmp_path / STARTUP_FILE))] == [9]
     assert not [f for f in os.listdir(tmp_path) if f.startswith(".")]   # no temporary left
+
+
+def test_a_call_from_python_does_not_count_the_process_start(tmp_path):
+    rec = StartupClock(count_process=False).write(str(tmp_path))
+    assert rec["process_start_to_clock_s"] is None
+    assert rec["command_to_first_iteration_s"] == pytest.approx(sum(rec["phases_s"].values()))
+
+
+def test_main_counts_the_process_start_only_as_the_command(monkeypatch):
+    from dscpp_jax import cli
+    monkeypatch.setattr(cli, "_FROM_COMMAND_LINE", True)
+    assert cli.main(["train", "--env", "point_u_maze", "--seeds", "3-1"]) == 2
+    assert cli._FROM_COMMAND_LINE is False   # a call with arguments is not the command line
