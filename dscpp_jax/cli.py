@@ -444,12 +444,13 @@ def train(cfg: Optional[Config] = None, run_dir: Optional[str] = None, resume: b
 
 
 def _write_startup(clock, run_dir: str, pbar=None, **extra) -> None:
-    """Record the command's start-up in run_dir/startup.json and say it in one line."""
+    """Record the command's start-up in run_dir/startup.jsonl and say it in one line."""
+    from dscpp_jax.run_logging import STARTUP_FILE
     try:
         clock.write(run_dir, **extra)
-        where = f"; {os.path.join(run_dir, 'startup.json')}"
+        where = f"; {os.path.join(run_dir, STARTUP_FILE)}"
     except OSError as e:
-        where = f" (startup.json not written: {e})"
+        where = f" ({STARTUP_FILE} not written: {e})"
     (pbar.write if pbar is not None else print)(clock.line() + where, file=sys.stderr)
 
 

@@ -68,7 +68,7 @@ def atomic_write(path: str, text: str) -> None:
         raise
 
 
-STARTUP_FILE = "startup.json"
+STARTUP_FILE = "startup.jsonl"
 
 
 def process_age_s() -> Optional[float]:
@@ -88,8 +88,8 @@ class StartupClock:
     """Where a training command's start goes, up to the end of its first iteration: with
     ``count_process``, the process's age when the clock starts (interpreter and imports: for a
     process that is the command), and named phases timed one after another (`mark` closes the
-    phase that ran since the last mark). `write` appends one record per command to the run
-    directory's startup.json (a resumed run adds one)."""
+    phase that ran since the last mark). `write` appends one JSON line per command to the run
+    directory's startup.jsonl (a resumed run adds one)."""
 
     def __init__(self, count_process: bool = True):
         self.before_s = process_age_s() if count_process else None
@@ -121,20 +121,37 @@ class StartupClock:
                 f"iteration ({', '.join(parts)})")
 
     def write(self, run_dir: str, **extra) -> dict:
-        """Append this command's record to run_dir/startup.json (a damaged file starts anew)."""
-        path = os.path.join(run_dir, STARTUP_FILE)
-        records = []
-        try:
-            with open(path) as f:
-                records = json.load(f)
-            if not isinstance(records, list):
-                records = []
-        except (OSError, ValueError):
-            records = []
+        """Append this command's record to run_dir/startup.jsonl as one line."""
         rec = self.record(**extra)
-        records.append(rec)
-        atomic_write(path, json.dumps(records, indent=1))
+        path = os.path.join(run_dir, STARTUP_FILE)
+        lead = ""
+        try:   # a line cut short by a crash ends here, so that this record gets its own line
+            with open(path, "rb") as f:
+                f.seek(-1, os.SEEK_END)
+                lead = "" if f.read(1) == b"\n" else "\n"
+        except OSError:   # no file yet, or an empty one
+            pass
+        with open(path, "a") as f:
+            f.write(lead + json.dumps(rec) + "\n")
         return rec
+
+
+def read_startup(run_dir: str) -> list:
+    """The start-up records of a run (or group) directory, oldest first; unreadable lines (a
+    write cut short) are left out, and a directory without any gives []."""
+    out = []
+    try:
+        with open(os.path.join(run_dir, STARTUP_FILE)) as f:
+            for line in f:
+                try:
+                    rec = json.loads(line)
+                except ValueError:
+                    continue
+                if isinstance(rec, dict):
+                    out.append(rec)
+    except OSError:
+        return []
+    return out
 
 
 def _csv_text(rows) -> str:

@@ -86,14 +86,12 @@ def iteration_times(metrics_path: str):
 
 
 def startup_of(run_dir: str):
-    """The run's first start-up record (its startup.json, written by `train` after the first
+    """The run's first start-up record (its startup.jsonl, written by `train` after the first
     iteration), or None where there is none."""
-    try:
-        with open(os.path.join(run_dir, "startup.json")) as f:
-            records = json.load(f)
-        return records[0] if isinstance(records, list) and records else None
-    except (OSError, ValueError):
-        return None
+    _dscpp_jax()
+    from dscpp_jax.run_logging import read_startup
+    records = read_startup(run_dir)
+    return records[0] if records else None
 
 
 def summary_table(rows, goal=None) -> str:

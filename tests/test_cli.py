@@ -9,7 +9,7 @@ import pytest
 from dscpp_jax import checkpoint as ck
 from dscpp_jax import trainer as T
 from dscpp_jax.cli import main
-from dscpp_jax.run_logging import read_metrics
+from dscpp_jax.run_logging import read_metrics, read_startup
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -49,7 +49,7 @@ def test_cli_train_resume_interrupt_eval_plot(tmp_path, monkeypatch, capsys):
     assert final["iteration"] == 2 and final["seed"] == 0 and final["env_steps"] == 160
     assert 0.0 <= final["eval/success_rate"] <= 1.0
     # the start-up is recorded: one record per command, up to its first iteration
-    st = json.load(open(os.path.join(run, "startup.json")))
+    st = read_startup(run)
     assert len(st) == 1 and st[0]["resumed_at_iteration"] == 0 and st[0]["iteration"] == 1
     assert {"init", "first iteration"} <= set(st[0]["phases_s"])
     assert st[0]["command_to_first_iteration_s"] >= sum(st[0]["phases_s"].values()) - 1e-2
@@ -74,7 +74,7 @@ def test_cli_train_resume_interrupt_eval_plot(tmp_path, monkeypatch, capsys):
     assert rc == 0
     assert ck.latest_step(run) == 4
     assert read_metrics(run)["iteration"] == [1.0, 2.0, 3.0, 4.0]
-    st = json.load(open(os.path.join(run, "startup.json")))
+    st = read_startup(run)
     assert len(st) == 2 and st[1]["resumed_at_iteration"] == 2 and st[1]["iteration"] == 3
     assert "restore" in st[1]["phases_s"]
     monkeypatch.setattr(T, "train_step", real)

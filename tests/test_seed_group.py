@@ -145,7 +145,8 @@ def test_group_equals_separate_runs(ref, tmp_path):
         assert ev_a["seed"] == s and ev_a["iteration"] == 6
     gj = json.load(open(os.path.join(ref, "group.json")))
     assert gj["seeds"] == [0, 1] and gj["mesh"] == {"seeds": 1} and "jax" in gj["versions"]
-    st = json.load(open(os.path.join(ref, "startup.json")))   # the group's start, once
+    from dscpp_jax.run_logging import read_startup
+    st = read_startup(ref)   # the group's start, once
     assert len(st) == 1 and st[0]["seeds"] == [0, 1] and "first iteration" in st[0]["phases_s"]
     assert json.load(open(os.path.join(ref, "s1", "config.json")))["config"]["seed"] == 1
     assert not os.path.exists(os.path.join(ref, "s0", "checkpoints"))   # one group checkpoint
@@ -466,7 +467,7 @@ def test_a_stuck_chain_warning_names_its_seed_once(tmp_path, monkeypatch, capsys
     monkeypatch.setattr(cli, "_chain_verdict", lambda cfg, d: f"verdict of {os.path.basename(d)}")
     assert main(TRAIN + ["--seeds", "0-1", "--run-dir", str(tmp_path / "g")]) == 0
     out, err = capsys.readouterr()
-    assert err.count("stuck") == 1 and "seed 1, iteration 1: stuck" in err
+    assert err.count(": stuck") == 1 and "seed 1, iteration 1: stuck" in err
     lines = [l for l in out.splitlines() if l.startswith(("  s0:", "  s1:"))]
     assert [l.rsplit(", chain: ", 1)[1] for l in lines] == ["verdict of s0", "verdict of s1"]
 

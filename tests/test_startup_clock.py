@@ -1,13 +1,12 @@
-"""`run_logging.StartupClock`: the phases of a command's start add up, records append, and the
+"""`run_logging.StartupClock`: the phases of a command's start add up, records append as lines, and the
 process's age comes from /proc where there is one."""
-import json
 import os
 import sys
 import time
 
 import pytest
 
-from dscpp_jax.run_logging import STARTUP_FILE, StartupClock, process_age_s
+from dscpp_jax.run_logging import STARTUP_FILE, StartupClock, process_age_s, read_startup
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
@@ -34,12 +33,13 @@ def test_phases_add_up_and_records_append(tmp_path, monkeypatch):
         2.0 + sum(rec["phases_s"].values()), abs=2e-3)
     assert "to the end of the first iteration" in clock.line() and "process start 2.0 s" in clock.line()
     StartupClock().write(str(tmp_path), iteration=7)
-    recs = json.load(open(tmp_path / STARTUP_FILE))
-    assert [r["iteration"] for r in recs] == [1, 7]
-    # a damaged file starts anew rather than failing the run
-    (tmp_path / STARTUP_FILE).write_text("{not json")
-    StartupClock().write(str(tmp_path), iteration=9)
-    assert [r["iteration"] for r in json.load(open(tmp_path / STARTUP_FILE))] == [9]
+    assert [r["iteration"] for r in read_startup(str(tmp_path))] == [1, 7]
+    # a line cut short (a crash mid-write) is skipped, and the next command appends after it
+    with open(tmp_path / STARTUP_FILE, "a") as f:
+        f.write('{"iteration": 8, "pha')
+    StartupClock().write(str(tmp_path), iteration=9)   # on a line of its own
+    assert [r["iteration"] for r in read_startup(str(tmp_path))] == [1, 7, 9]
+    assert read_startup(str(tmp_path / "none")) == []
     assert not [f for f in os.listdir(tmp_path) if f.startswith(".")]   # no temporary left
 
 

@@ -112,15 +112,15 @@ def test_the_summary_shows_the_start_up_that_train_recorded(tmp_path):
     run = tmp_path / "u_s0"
     run.mkdir()
     assert ttt.startup_of(str(run)) is None
-    (run / "startup.json").write_text(json.dumps([
-        {"command_to_first_iteration_s": 53.8, "phases_s": {"first iteration": 1.1}},
-        {"command_to_first_iteration_s": 20.0, "phases_s": {}}]))   # a resume's record follows
+    (run / "startup.jsonl").write_text(
+        json.dumps({"command_to_first_iteration_s": 53.8, "phases_s": {"first iteration": 1.1}})
+        + "\n" + json.dumps({"command_to_first_iteration_s": 20.0, "phases_s": {}}) + "\n")
     st = ttt.startup_of(str(run))
     assert st["command_to_first_iteration_s"] == 53.8
     row = dict(name="u_s0", startup=st, times=dict(first_s=1.1, warmup_s=1.02, after_s=1.2),
                hit=dict(iteration=72, episodes=912, command_s=141.1))
     assert "| u_s0 | 53.8 s | 1.1 s | 1.02 / 1.20 | 72, 912 | 141 s |" in ttt.summary_table([row])
-    (run / "startup.json").write_text("[")
+    (run / "startup.jsonl").write_text("{")   # cut short
     assert ttt.startup_of(str(run)) is None
 
 
