@@ -8,6 +8,12 @@ Safety: a new checkpoint is read back before any older one is deleted (orbax its
 the oldest as soon as the new one is written), so a save that fails, or writes damaged files,
 never leaves a run with only a broken checkpoint. Restoring the latest checkpoint falls back to
 the newest one that restores, with a warning on stderr naming both steps.
+
+Training saves in the background (`save(..., wait=False)`): the call returns once orbax has copied
+the state to host memory; the write, the read-back and the pruning run on a worker thread that
+touches no device, while the next iterations run. Its outcome is collected by the next `save`,
+`wait` or `close`, which raise its CheckpointError, if any; until then the older checkpoints
+stay, as with a save that fails.
 """
 from __future__ import annotations
 
@@ -16,6 +22,7 @@ import logging
 import os
 import shutil
 import sys
+import threading
 import time
 from typing import Any
 
@@ -141,29 +148,73 @@ class Checkpointer:
         quiet_orbax()
         opts = ocp.CheckpointManagerOptions(max_to_keep=None, create=True)
         self.manager = ocp.CheckpointManager(self.directory, options=opts)
+        self._worker: threading.Thread | None = None   # a save finishing in the background
+        self._worker_error: BaseException | None = None
 
     def all_steps(self) -> list[int]:
+        self._join()
+        return self._steps()
+
+    def _steps(self) -> list[int]:
         return sorted(int(s) for s in self.manager.all_steps())
 
-    def save(self, step: int, state: Any, force: bool = True) -> None:
+    def save(self, step: int, state: Any, force: bool = True, wait: bool = True) -> None:
         """Write, read back, then prune. A failure raises a CheckpointError (older checkpoints
-        stay as they were); a step that is already saved is left alone."""
+        stay as they were); a step that is already saved is left alone.
+
+        `wait=False` returns once the state is in host memory and finishes on a worker thread;
+        the next `save`, `wait` or `close` waits for it and raises its error."""
+        self.wait()
         step = int(step)
-        if step in self.all_steps():
+        if step in self._steps():
             return
         try:
             self.manager.save(step, args=ocp.args.StandardSave(as_stored(to_storable(state))),
                               force=force)
-            self.manager.wait_until_finished()
         except Exception as e:  # noqa: BLE001 - orbax / tensorstore wrap OSErrors in many types
-            from dscpp_jax.run_logging import os_error_fix
-            raise CheckpointError(
-                f"could not save the checkpoint of iteration {step} under {self.directory} "
-                f"({_reason(e)}); {self._kept()}. Fix: "
-                f"{os_error_fix(e, self.directory, self.run_dir)}") from e
+            raise self._save_error(step, e) from e
+        abstract = _abstract(state)
+        if wait:
+            self._finish(step, abstract)
+            return
+
+        def work():
+            try:
+                self._finish(step, abstract)
+            except BaseException as e:  # noqa: BLE001 - handed to the thread that waits
+                self._worker_error = e
+        self._worker = threading.Thread(target=work, name=f"checkpoint-{step}", daemon=False)
+        self._worker.start()
+
+    def wait(self) -> None:
+        """Wait for a save still finishing in the background; raise its CheckpointError."""
+        self._join()
+        err, self._worker_error = self._worker_error, None
+        if err is not None:
+            raise err
+
+    def _join(self) -> None:
+        if self._worker is not None:
+            self._worker.join()
+            self._worker = None
+
+    def _save_error(self, step: int, e: BaseException) -> CheckpointError:
+        from dscpp_jax.run_logging import os_error_fix
+        return CheckpointError(
+            f"could not save the checkpoint of iteration {step} under {self.directory} "
+            f"({_reason(e)}); {self._kept()}. Fix: "
+            f"{os_error_fix(e, self.directory, self.run_dir)}")
+
+    def _finish(self, step: int, like: Any) -> None:
+        """The part of a save after orbax has the state: the write's end, read-back, pruning.
+        Touches no device (`like` is abstract; the read-back lands in numpy arrays)."""
+        try:
+            self.manager.wait_until_finished()
+        except Exception as e:  # noqa: BLE001
+            raise self._save_error(step, e) from e
         if self.verify:
             try:
-                self._read_back(step, state)
+                self._read_back(step, like)
             except Exception as e:  # noqa: BLE001
                 moved = self._set_aside(step)
                 raise CheckpointError(
@@ -173,7 +224,7 @@ class Checkpointer:
         self._prune(step)
 
     def _kept(self) -> str:
-        steps = self.all_steps()
+        steps = self._steps()
         return (f"the earlier checkpoints (iterations {steps}) were kept" if steps else
                 "no earlier checkpoint exists")
 
@@ -184,7 +235,7 @@ class Checkpointer:
         self.manager.restore(step, args=ocp.args.StandardRestore(target))
 
     def _prune(self, newest: int) -> None:
-        older = [s for s in self.all_steps() if s < newest]
+        older = [s for s in self._steps() if s < newest]
         for s in older[:max(0, len(older) - (self.keep - 1))]:
             self.manager.delete(s)
 
@@ -202,6 +253,7 @@ class Checkpointer:
         return dst
 
     def latest_step(self) -> int | None:
+        self._join()
         return self.manager.latest_step()
 
     def restore(self, like: Any, step: int | None = None, set_aside_broken: bool = False) -> Any:
@@ -247,10 +299,14 @@ class Checkpointer:
         return from_stored(from_storable(stored, as_stored(like)), like)
 
     def close(self) -> None:
+        """Wait for a save still finishing (raising its error), then close the manager."""
         try:
-            self.manager.wait_until_finished()
+            self.wait()
         finally:
-            self.manager.close()
+            try:
+                self.manager.wait_until_finished()
+            finally:
+                self.manager.close()
 
 
 def save_state(run_dir: str, step: int, state: Any, keep: int = 2) -> None:

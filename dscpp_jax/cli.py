@@ -408,7 +408,7 @@ def train(cfg: Optional[Config] = None, run_dir: Optional[str] = None, resume: b
                                  options=int(m.get("options/num_options", 1)),
                                  steps_per_s=f"{row['time/env_steps_per_s']:.0f}", refresh=False)
             if cfg.checkpoint_every and it % cfg.checkpoint_every == 0:
-                ckpt.save(it, state)
+                ckpt.save(it, state, wait=False)   # written while the next iterations run
                 saved_iter = it
             if stop["flag"]:
                 break
@@ -416,7 +416,7 @@ def train(cfg: Optional[Config] = None, run_dir: Optional[str] = None, resume: b
                 print(f"time budget of {time_budget:.0f}s reached", file=sys.stderr)
                 break
         it = int(state.counters.iteration)
-        if it != saved_iter or ck.latest_step(run_dir) is None:
+        if it != saved_iter or ckpt.latest_step() is None:
             ckpt.save(it, state)
         if stop["flag"]:
             print(f"saved a checkpoint at iteration {it}; continue with --resume {run_dir}",

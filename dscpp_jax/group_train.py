@@ -339,7 +339,7 @@ def train_group(cfg: Config, seeds: Sequence[int], group_dir: Optional[str] = No
                       f"{int(env_steps.max())} episodes/seed {_range(episodes)} {ev_text}{ib_text} "
                       f"options {_range(options)} steps/s (all seeds) {rate:.0f}", flush=True)
             if cfg.checkpoint_every and group_it % cfg.checkpoint_every == 0:
-                ckpt.save(group_it, states)
+                ckpt.save(group_it, states, wait=False)   # written while the next iterations run
                 saved_iter = group_it
             over = time_budget is not None and time.time() - t_start >= time_budget
             stop_now, over = _agree(np.array([stop["flag"], over]))

@@ -487,14 +487,24 @@ class GroupCheckpointer:
         opts = ocp.CheckpointManagerOptions(max_to_keep=max(1, keep), create=True)
         self.manager = ocp.CheckpointManager(self.directory, options=opts)
 
-    def save(self, step: int, states: PyTree) -> None:
+    def save(self, step: int, states: PyTree, wait: bool = True) -> None:
+        """`wait=False` returns once orbax has copied the states to host memory; the files are
+        written in the background and the next `save`, `wait`, `latest_step` or `close` waits
+        for them (every process calls these at the same iterations)."""
         from dscpp_jax.checkpoint import as_stored
+        self.wait()
         storable = jax.tree_util.tree_map(
             lambda x: np.zeros((1,), x.dtype) if _empty(x) else x, as_stored(states))
         self.manager.save(int(step), args=self._ocp.args.StandardSave(storable), force=True)
+        if wait:
+            self.wait()
+
+    def wait(self) -> None:
+        """Wait for a save still being written."""
         self.manager.wait_until_finished()
 
     def latest_step(self) -> Optional[int]:
+        self.wait()
         return self.manager.latest_step()
 
     def restore(self, like: PyTree, mesh: Optional[Mesh] = None,

@@ -23,6 +23,55 @@ def test_roundtrip_with_typed_keys(tmp_path):
         ck.restore_state(str(tmp_path / "missing"), tree)
 
 
+def test_background_save_prunes_only_after_its_read_back(tmp_path, monkeypatch):
+    """`save(wait=False)` returns while the write's end, read-back and pruning are still to come
+    (held here on an event); the older checkpoint stays until then, and the result is a plain
+    save's."""
+    import threading
+    run = str(tmp_path)
+    tree = {"a": jnp.arange(6.0), "k": jax.random.key(5)}
+    c = ck.Checkpointer(run, keep=1)
+    c.save(1, tree)
+    gate, finishing = threading.Event(), []
+    plain_finish = ck.Checkpointer._finish
+
+    def held_finish(self, step, like):
+        finishing.append(step)
+        assert gate.wait(60)
+        plain_finish(self, step, like)
+    monkeypatch.setattr(ck.Checkpointer, "_finish", held_finish)
+    tree2 = {"a": jnp.arange(6.0) + 10.0, "k": jax.random.key(6)}
+    c.save(2, tree2, wait=False)                 # returns with the finish held
+    assert c._worker is not None and c._worker.is_alive()
+    assert 1 in c._steps()                       # not pruned before the new one reads back
+    gate.set()
+    c.wait()
+    assert finishing == [2] and c.all_steps() == [2]
+    c.close()
+    back = ck.restore_state(run, tree)
+    np.testing.assert_array_equal(back["a"], tree2["a"])
+    np.testing.assert_array_equal(jax.random.key_data(back["k"]), jax.random.key_data(tree2["k"]))
+
+
+def test_background_save_error_surfaces_at_the_next_call(tmp_path, monkeypatch):
+    run = str(tmp_path)
+    tree = {"a": jnp.arange(4.0)}
+    c = ck.Checkpointer(run, keep=1)
+    c.save(1, tree)
+    monkeypatch.setattr(ck.Checkpointer, "_read_back",
+                        lambda self, step, like: (_ for _ in ()).throw(ValueError("Invalid JSON")))
+    c.save(2, tree, wait=False)                  # no error yet: it is raised where one waits
+    with pytest.raises(ck.CheckpointError, match="iteration 2 did not read back"):
+        c.save(3, tree)
+    assert c.all_steps() == [1]                  # the older one stays; 2 was set aside
+    c.save(3, tree, wait=False)
+    with pytest.raises(ck.CheckpointError, match="iteration 3 did not read back"):
+        c.close()
+    monkeypatch.undo()
+    assert ck.all_steps(run) == [1]
+    np.testing.assert_array_equal(ck.restore_state(run, tree)["a"], tree["a"])
+
+
 def test_orbax_false_wait_warning_is_dropped_and_others_kept(tmp_path, caplog):
     from absl import logging as absl_logging
     ck.Checkpointer(str(tmp_path))         # installs the filter (once, however often)
