@@ -103,3 +103,25 @@ def test_resume_equivalence(tmp_path, algo):
     assert T.train_step._cache_size() == n_compiled   # a restored state does not recompile
     assert int(resumed.counters.iteration) == 4
     assert_trees_equal(resumed, straight)
+
+
+def test_bench_checkpoint_smoke(tmp_path):
+    """experiments/bench_checkpoint.py on a point maze: one run and a 2-seed group, both ways."""
+    import importlib.util
+    import json
+    import os
+    path = os.path.join(os.path.dirname(os.path.dirname(__file__)), "experiments",
+                        "bench_checkpoint.py")
+    spec = importlib.util.spec_from_file_location("bench_checkpoint", path)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    out = str(tmp_path / "b.json")
+    assert bench.main(["--env", "point_u_maze", "--algo", "td3_her", "--seeds-list", "1,2",
+                       "--repeat", "1", "--dir", str(tmp_path / "ck"), "--out", out]) == 0
+    res = json.load(open(out))["results"]
+    assert [r["seeds"] for r in res] == [1, 2]
+    for r in res:
+        assert r["state_mb"] > 0 and r["plain_blocked_s"] > 0
+        assert 0 < r["background_blocked_s"] <= r["background_finished_s"]
+    with pytest.raises(SystemExit):
+        bench.main(["--seeds-list", "0"])
