@@ -102,7 +102,6 @@ def main(argv=None) -> int:
     finally:
         if a.dir is None:
             shutil.rmtree(workdir, ignore_errors=True)
-    import orbax.checkpoint  # noqa: F401
     from importlib import metadata
     out = {"command": "python " + " ".join([os.path.relpath(__file__, ROOT)] + sys.argv[1:]),
            "device": str(jax.devices()[0].device_kind), "platform": jax.default_backend(),
