@@ -72,6 +72,32 @@ def test_background_save_error_surfaces_at_the_next_call(tmp_path, monkeypatch):
     np.testing.assert_array_equal(ck.restore_state(run, tree)["a"], tree["a"])
 
 
+def test_background_write_error_surfaces_at_the_next_call(tmp_path, monkeypatch):
+    """In the background the write itself runs on the worker (the loop only copies the state to
+    host memory), so a write that fails is reported where one waits, and the older checkpoint
+    stays."""
+    run = str(tmp_path)
+    tree = {"a": jnp.arange(4.0)}
+    c = ck.Checkpointer(run, keep=1)
+    c.save(1, tree)
+    plain_save = c.manager.save
+    calls = []
+
+    def full_disk(step, *a, **k):
+        calls.append(step)
+        raise OSError(28, "No space left on device")
+    monkeypatch.setattr(c.manager, "save", full_disk)
+    c.save(2, tree, wait=False)                  # returns: the write is the worker's
+    with pytest.raises(ck.CheckpointError, match="could not save the checkpoint of iteration 2"):
+        c.wait()
+    assert calls == [2] and c.all_steps() == [1]
+    monkeypatch.setattr(c.manager, "save", plain_save)
+    c.save(3, {"a": jnp.arange(4.0) + 1.0}, wait=False)
+    c.close()
+    assert ck.all_steps(run) == [3]
+    np.testing.assert_array_equal(ck.restore_state(run, tree)["a"], np.arange(4.0) + 1.0)
+
+
 def test_orbax_false_wait_warning_is_dropped_and_others_kept(tmp_path, caplog):
     from absl import logging as absl_logging
     ck.Checkpointer(str(tmp_path))         # installs the filter (once, however often)
