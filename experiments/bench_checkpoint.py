@@ -9,6 +9,10 @@ N > 1) at the preset's sizes (replay buffers included, which dominate), then sav
 times each way into a temporary directory and reports the median seconds the caller was blocked,
 and for the background save also the seconds until it had finished. Writes JSON (device,
 versions, command, every number).
+
+A state fresh from `init` is mostly zeros, which orbax's compressed files store almost for free;
+a trained run's buffers are not. `--filled` first overwrites every floating-point array with
+random numbers, which writes like (or worse than) a run whose buffers are full.
 """
 from __future__ import annotations
 
@@ -32,7 +36,24 @@ def _nbytes(tree) -> int:
     return int(sum(getattr(x, "nbytes", 0) for x in jax.tree_util.tree_leaves(tree)))
 
 
-def bench_one(env: str, algo: str, n: int, repeat: int, workdir: str) -> dict:
+def filled(tree, seed: int = 0):
+    """`tree` with every non-empty floating-point array replaced by standard normal numbers (same
+    shape, dtype and placement); integer, boolean and key arrays as they are."""
+    import jax
+    import jax.numpy as jnp
+    leaves, treedef = jax.tree_util.tree_flatten(tree)
+    key, out = jax.random.key(seed), []
+    for i, x in enumerate(leaves):
+        if (hasattr(x, "dtype") and jnp.issubdtype(x.dtype, jnp.floating)
+                and getattr(x, "size", 0) > 0):
+            v = jax.random.normal(jax.random.fold_in(key, i), x.shape, jnp.float32).astype(x.dtype)
+            x = jax.device_put(v, x.sharding)
+        out.append(x)
+    return jax.tree_util.tree_unflatten(treedef, out)
+
+
+def bench_one(env: str, algo: str, n: int, repeat: int, workdir: str,
+              fill: bool = False) -> dict:
     import jax
 
     from dscpp_jax import checkpoint as ck
@@ -46,6 +67,8 @@ def bench_one(env: str, algo: str, n: int, repeat: int, workdir: str) -> dict:
     else:
         state = SG.init_group(list(range(n)), cfg)
         saver = SG.GroupCheckpointer(os.path.join(workdir, f"n{n}"), keep=2)
+    if fill:
+        state = filled(state)
     jax.block_until_ready(state)
     plain, blocked, finished = [], [], []
     step = 0
@@ -66,7 +89,7 @@ def bench_one(env: str, algo: str, n: int, repeat: int, workdir: str) -> dict:
     med = statistics.median
     return {"seeds": n, "state_mb": _nbytes(ck.as_stored(ck.to_storable(state))) / 1e6,
             "plain_blocked_s": med(plain), "background_blocked_s": med(blocked),
-            "background_finished_s": med(finished), "plain_all_s": plain,
+            "background_finished_s": med(finished), "filled": fill, "plain_all_s": plain,
             "background_blocked_all_s": blocked, "background_finished_all_s": finished}
 
 
@@ -78,6 +101,8 @@ def main(argv=None) -> int:
     p.add_argument("--repeat", type=int, default=3)
     p.add_argument("--dir", default=None, help="where to write the checkpoints (default: a "
                    "temporary directory, deleted afterwards)")
+    p.add_argument("--filled", action="store_true", help="random numbers in every floating-point "
+                   "array first (written like full buffers; default: the state as `init` makes it)")
     p.add_argument("--out", default=None, help="JSON file for the results")
     a = p.parse_args(argv)
     if a.repeat < 1:
@@ -93,7 +118,7 @@ def main(argv=None) -> int:
     rows = []
     try:
         for n in sizes:
-            r = bench_one(a.env, a.algo, n, a.repeat, workdir)
+            r = bench_one(a.env, a.algo, n, a.repeat, workdir, fill=a.filled)
             rows.append(r)
             print(f"{a.env}/{a.algo} N={n}: state {r['state_mb']:.0f} MB; loop blocked "
                   f"{r['plain_blocked_s']:.2f} s by a plain save, {r['background_blocked_s']:.2f} s "
@@ -107,7 +132,7 @@ def main(argv=None) -> int:
            "device": str(jax.devices()[0].device_kind), "platform": jax.default_backend(),
            "cpu_count": os.cpu_count(), "python": platform.python_version(),
            "jax": jax.__version__, "orbax": metadata.version("orbax-checkpoint"),
-           "env": a.env, "algo": a.algo, "repeat": a.repeat, "results": rows}
+           "env": a.env, "algo": a.algo, "repeat": a.repeat, "filled": a.filled, "results": rows}
     if a.out:
         with open(a.out, "w") as f:
             json.dump(out, f, indent=1)

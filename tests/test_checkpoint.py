@@ -143,11 +143,21 @@ def test_bench_checkpoint_smoke(tmp_path):
     spec.loader.exec_module(bench)
     out = str(tmp_path / "b.json")
     assert bench.main(["--env", "point_u_maze", "--algo", "td3_her", "--seeds-list", "1,2",
-                       "--repeat", "1", "--dir", str(tmp_path / "ck"), "--out", out]) == 0
+                       "--repeat", "1", "--filled", "--dir", str(tmp_path / "ck"),
+                       "--out", out]) == 0
     res = json.load(open(out))["results"]
     assert [r["seeds"] for r in res] == [1, 2]
     for r in res:
         assert r["state_mb"] > 0 and r["plain_blocked_s"] > 0
         assert 0 < r["background_blocked_s"] <= r["background_finished_s"]
+    assert all(r["filled"] for r in res)
     with pytest.raises(SystemExit):
         bench.main(["--seeds-list", "0"])
+    tree = {"f": jnp.zeros((3, 4), jnp.bfloat16), "i": jnp.arange(5), "k": jax.random.key(1),
+            "e": jnp.zeros((0,), jnp.float32)}
+    got = bench.filled(tree)
+    assert got["f"].dtype == jnp.bfloat16 and got["f"].shape == (3, 4)
+    assert np.all(np.asarray(got["f"], np.float32) != 0)
+    np.testing.assert_array_equal(got["i"], tree["i"])
+    np.testing.assert_array_equal(jax.random.key_data(got["k"]), jax.random.key_data(tree["k"]))
+    assert got["e"].shape == (0,)
