@@ -11,9 +11,9 @@ the newest one that restores, with a warning on stderr naming both steps.
 
 Training saves in the background (`save(..., wait=False)`): the call returns once the state is
 copied to host memory (numpy); orbax's save, the write, the read-back and the pruning run on a
-worker thread that touches no device, while the next iterations run. Its outcome is collected by the next `save`,
-`wait` or `close`, which raise its CheckpointError, if any; until then the older checkpoints
-stay, as with a save that fails.
+worker thread that touches no device, while the next iterations run. Its outcome is collected by
+the next `save`, `wait` or `close`, which raise its CheckpointError, if any; until then the older
+checkpoints stay, as with a save that fails.
 """
 from __future__ import annotations
 
@@ -213,7 +213,7 @@ class Checkpointer:
             f"{os_error_fix(e, self.directory, self.run_dir)}")
 
     def _finish(self, step: int, like: Any) -> None:
-        """The part of a save after orbax has the state: the write's end, read-back, pruning.
+        """The part of a save after orbax's `save` call: the write's end, read-back, pruning.
         Touches no device (`like` is abstract; the read-back lands in numpy arrays)."""
         try:
             self.manager.wait_until_finished()
