@@ -40,7 +40,7 @@ RETIRED_FIELDS: dict[str, Any] = dict(
     td3_upright_weight=0.0, td3_upright_min=0.5, td3_absorb_fallen=False,
     mpc_upright_weight=0.0, mpc_upright_min=0.5, gestation_patience=0,
     frontier_metric="euclidean", frontier_stall=0, svc_bound=0.0, frontier_anchor=0.0,
-    warmup_episode_length=0)
+    warmup_episode_length=0, fall_is_terminal=False)
 # Fields only the host driver reads (the TrainState carries `Config.device_view()`).
 HOST_ONLY_DEFAULTS = dict(seed=0, total_env_steps=1, total_episodes=0, eval_every=0,
                           log_every=1, checkpoint_every=0, keep_checkpoints=1, preset="paper")
@@ -81,12 +81,6 @@ class Config:
     max_pos_traj: int = 100
     max_neg: int = 100
     svm_gamma: float = 0.5
-    fall_is_terminal: bool = False     # training only (beyond the paper, whose ant goes on
-                                       # lying on its back): a body on its back ends the
-                                       # training episode, never counts as an option's success,
-                                       # and TD3 learns the fall as terminal with the value of
-                                       # never reaching a goal, -1 / (1 - discount). Evaluation
-                                       # is unchanged. No effect on the point masses
     diverse_starts: bool = True        # training episodes after warm-up start anywhere free
     task_start_prob: float = 0.0       # with diverse starts: the share of training episodes after
                                        # warm-up that start at the task start instead
@@ -325,9 +319,6 @@ class Config:
         need(self.goal_tolerance > 0, "goal_tolerance must be > 0")
         need(0.0 < self.discount <= 1.0, "discount must be in (0, 1]")
         need(0.0 < self.mpc_discount <= 1.0, "mpc_discount must be in (0, 1]")
-        need(not self.fall_is_terminal or self.discount < 1.0,
-             "fall_is_terminal needs discount < 1 (a fall is worth -1 / (1 - discount)); lower "
-             "discount or set fall_is_terminal=false")
         need(not self.td3_clip_targets or self.discount < 1.0,
              "td3_clip_targets needs discount < 1 (with discount 1 the values have no lower "
              "bound); lower discount or set td3_clip_targets=false")

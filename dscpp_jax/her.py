@@ -16,8 +16,7 @@ Strategies (the relabelled goal is an achieved xy, ``next_obs[..., :goal_dim]``)
 
 Reward and continuation are recomputed for the (possibly new) goal: reward 0 within
 ``goal_tolerance`` of the goal else -1; ``discount`` 0 only when the goal is reached (time-outs and
-segment ends bootstrap). :func:`absorb_falls` (``Config.fall_is_terminal``, beyond the paper)
-makes the transitions into a fallen state terminal at the value of never reaching a goal.
+segment ends bootstrap).
 
 Many draws from one buffer (a learning phase's gradient steps): :func:`her_index` computes, once,
 the running count of valid entries and every entry's distance to its segment's latest step, and
@@ -190,20 +189,3 @@ def her_sample(
         buf, rows, envs, u_future, u_relabel, strategy, relabel_prob, max_segment, goal_tolerance
     )
 
-
-
-def absorb_falls(batch: Transition, fallen: jax.Array, discount: float) -> Transition:
-    """Make the transitions into a fallen state terminal, worth never reaching a goal.
-
-    Beyond the paper (``Config.fall_is_terminal``). A body on its back does not get up again, so
-    from there no goal is reached: under the -1 step reward its value is
-    ``-1 / (1 - discount)``. Those transitions get that as their reward and discount 0, also
-    where a hindsight goal counts them as reached (a fall at the goal is still a fall).
-    ``fallen``: ``(n,)`` bool, ``next_obs`` on its back.
-    """
-    if not 0.0 < discount < 1.0:
-        raise ValueError(f"absorb_falls: discount must be in (0, 1), got {discount}")
-    fallen = jnp.asarray(fallen, bool)
-    worst = jnp.float32(-1.0 / (1.0 - discount))
-    return batch.replace(reward=jnp.where(fallen, worst, batch.reward).astype(jnp.float32),
-                         discount=jnp.where(fallen, 0.0, batch.discount).astype(jnp.float32))

@@ -529,15 +529,8 @@ def _rollout(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[s
         nan = nes.info["nan"] > 0
         overflow = jnp.any(nes.info["overflow"] > 0)
         on_back = env.upright(nes.obs) < 0
-        if config.fall_is_terminal:   # the fall ends the training episode (a failure)
-            fell = on_back & ~(nes.done > 0)
-            nes = nes.replace(done=jnp.where(fell, jnp.ones_like(nes.done), nes.done))
-        else:
-            fell = jnp.zeros_like(on_back)
         ex = _push_traj(ex, next_xy)
         ended, success = _option_end(config, env, chain, ex, next_xy, nes.done)
-        if config.fall_is_terminal:   # a fall is never an option's success
-            success = success & ~on_back
         # record option outcomes (not during warm-up: random actions say nothing about options)
         if config.hierarchical:
             events = ended & ~warmup
@@ -558,7 +551,6 @@ def _rollout(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[s
         acc["overflow_steps"] = acc["overflow_steps"] + overflow.astype(jnp.int32)
         acc["ep_len_sum"] = acc["ep_len_sum"] + jnp.sum(jnp.where(done, nes.info["steps"], 0))
         acc["on_back_steps"] = acc["on_back_steps"] + jnp.sum(on_back)
-        acc["fall_episodes"] = acc["fall_episodes"] + jnp.sum(fell)
         ex = ex.replace(option=jnp.where(ended, NO_OPTION, ex.option))
 
         # auto-reset finished episodes (diverse starts after warm-up). Whether the warm-up is
@@ -587,7 +579,7 @@ def _rollout(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[s
     K = config.max_options
     z = jnp.zeros((), jnp.int32)
     acc0 = dict(episodes=z, episode_successes=z, option_events=z, option_successes=z,
-                nan_episodes=z, ep_len_sum=z, overflow_steps=z, on_back_steps=z, fall_episodes=z)
+                nan_episodes=z, ep_len_sum=z, overflow_steps=z, on_back_steps=z)
     carry = (state.env_state, state.exec, state.chain, state.replay, state.model_replay, acc0,
              state.inband)
     carry, _ = jax.lax.scan(body, carry, jax.random.split(key, config.steps_per_iter))
@@ -612,10 +604,9 @@ def _rollout(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[s
                                           acc["option_successes"] / jnp.maximum(acc["option_events"], 1),
                                           jnp.nan),
         "train/nan_physics_steps": acc["nan_episodes"].astype(jnp.float32),
-        # env steps that ended with the body on its back (ant; 0 for point masses), and the
-        # training episodes a fall ended (`fall_is_terminal`)
+        # share of the training envs' steps that ended with the body on its back (the ant;
+        # 0 for point masses): the paper's ant lies there until its episode ends
         "train/on_back_share": acc["on_back_steps"].astype(jnp.float32) / (B * config.steps_per_iter),
-        "train/fall_episodes": acc["fall_episodes"].astype(jnp.float32),
         "train/physics_overflow_steps": acc["overflow_steps"].astype(jnp.float32),
         "train/warmup": warmup.astype(jnp.float32),
         "train/random_action_prob": rand_prob,
@@ -860,21 +851,13 @@ def td3_buffer(config: Config, replay: Replay) -> Any:
 def td3_sample_fn(config: Config, env: Any = None) -> Any:
     """``sample_fn(key, replay, n) -> Transition`` for TD3: HER relabelling within an option's
     segment (the episode's for the flat algorithms). ``replay`` is a Replay or its
-    :func:`td3_buffer` (the same draws, cheaper). With ``fall_is_terminal`` the transitions into
-    a state on its back (``env.upright`` below 0; ``env`` defaults to ``make_env(config)``) are
-    terminal, worth never reaching a goal (:func:`dscpp_jax.her.absorb_falls`)."""
+    :func:`td3_buffer` (the same draws, cheaper). ``env`` is unused (kept for callers)."""
     max_seg = _her_max_segment(config)
-    if config.fall_is_terminal and env is None:
-        env = make_env(config)
 
     def sample_fn(k, buf, n):
-        batch = _her_sample(k, buf, n, strategy=config.her_strategy,
-                            relabel_prob=config.her_relabel_prob, max_segment=max_seg,
-                            goal_tolerance=config.goal_tolerance)
-        if config.fall_is_terminal:
-            from dscpp_jax.her import absorb_falls
-            batch = absorb_falls(batch, env.upright(batch.next_obs) < 0, config.discount)
-        return batch
+        return _her_sample(k, buf, n, strategy=config.her_strategy,
+                           relabel_prob=config.her_relabel_prob, max_segment=max_seg,
+                           goal_tolerance=config.goal_tolerance)
 
     return sample_fn
 

@@ -244,30 +244,3 @@ def test_her_index_equals_the_windowed_search(steps, max_segment):
             np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
     with pytest.raises(ValueError, match="indexed with max_segment"):
         her_sample(jax.random.key(5), index, 8, "final", max_segment=max_segment + 1)
-
-
-def test_absorbed_falls_get_the_value_of_never_reaching_a_goal():
-    # the TD targets of transitions into a fallen state equal the endless -1 stream (NumPy sum),
-    # whatever the critic says and even where a hindsight goal counts them as reached; the other
-    # transitions keep HER's reward and continuation
-    from dscpp_jax.her import absorb_falls
-    from dscpp_jax.td3 import TD3Config, td3_init, td3_targets
-    rng = np.random.default_rng(7)
-    buf = _fill(_history(rng, 40, 3), 64, 3)
-    tr = her_sample(jax.random.key(1), buf, 256, "final", 1.0, 200)
-    fallen = rng.random(256) < 0.3
-    gamma = 0.97
-    out = absorb_falls(tr, jnp.asarray(fallen), gamma)
-    reached = np.asarray(tr.discount) == 0
-    assert (fallen & reached).any() and (~fallen).any()
-    cfg = TD3Config(hidden=(8, 8), discount=gamma)
-    st = td3_init(jax.random.key(2), OBS, GOAL, ACT, cfg)
-    y = np.asarray(td3_targets(cfg, st, out, jnp.zeros((256, ACT))))
-    endless = -np.sum(gamma ** np.arange(5000))
-    np.testing.assert_allclose(y[fallen], endless, rtol=1e-5)
-    y0 = np.asarray(td3_targets(cfg, st, tr, jnp.zeros((256, ACT))))
-    np.testing.assert_array_equal(y[~fallen], y0[~fallen])
-    for f in ("obs", "action", "next_obs", "goal"):
-        np.testing.assert_array_equal(np.asarray(getattr(out, f)), np.asarray(getattr(tr, f)))
-    with pytest.raises(ValueError, match="discount"):
-        absorb_falls(tr, jnp.asarray(fallen), 1.0)
