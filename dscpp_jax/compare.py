@@ -5,7 +5,8 @@ groups. What it asks of each setting is the same few numbers: the final success 
 (mean and standard error over seeds), how many iterations the in-band success from the start
 took to first reach a threshold, how fast the chain grew (the iteration at which K options were
 mature), from which episode the chain covered the start for good, how many failed evaluation
-episodes ended with the ant on its back, and what an iteration cost. This module reads them off
+episodes ended with the ant on its back (and how much of training it spent there), and what an
+iteration cost. This module reads them off
 the lean files of each run (``metrics.csv``, ``eval.json``, ``config.json``; no checkpoint), so
 it works on results copied off a GPU host.
 
@@ -75,6 +76,17 @@ def seconds_per_iteration(metrics: dict) -> Optional[float]:
     return statistics.median(vals) if vals else None
 
 
+def on_back_share(metrics: dict) -> Optional[float]:
+    """Mean ``train/on_back_share`` after the warm-up: the share of training env steps that ended
+    with the ant on its back. None where the run did not log it (point masses log 0)."""
+    share, warm = metrics.get("train/on_back_share"), metrics.get("train/warmup")
+    if not share:
+        return None
+    vals = [v for i, v in enumerate(share)
+            if math.isfinite(v) and not (warm and math.isfinite(warm[i]) and warm[i] > 0)]
+    return statistics.mean(vals) if vals else None
+
+
 def read_run(run_dir: str, levels: Sequence[float], mature: Sequence[int]) -> dict:
     """What one run reached (see the module docstring). Raises ValueError when ``run_dir`` holds
     no ``metrics.csv`` or that has no rows."""
@@ -111,6 +123,7 @@ def read_run(run_dir: str, levels: Sequence[float], mature: Sequence[int]) -> di
         "options_end": int(opts[-1]) if opts and math.isfinite(opts[-1]) else None,
         "episodes_end": float(m["episodes"][-1]),
         "s_per_iteration": seconds_per_iteration(m),
+        "on_back_share": on_back_share(m),
     }
 
 
@@ -164,6 +177,8 @@ def summarize(runs: Sequence[dict], levels: Sequence[float], mature: Sequence[in
     fell = [r for r in runs if r["falls"] is not None and r["failures"] is not None]
     out["falls"] = ([int(sum(r["falls"] for r in fell)), int(sum(r["failures"] for r in fell))]
                     if fell else None)
+    back = _finite(r["on_back_share"] for r in runs)
+    out["on_back_share"] = [statistics.mean(back), min(back), max(back)] if back else None
     spi = _finite(r["s_per_iteration"] for r in runs)
     out["s_per_iteration"] = statistics.median(spi) if spi else None
     return out
@@ -225,6 +240,9 @@ def format_table(result: dict) -> str:
                                      f"{c['options_end'][0]}-{c['options_end'][1]}" for c in cols]),
              ("failed final-evaluation episodes on the back",
               ["-" if not c["falls"] else f"{c['falls'][0]} of {c['falls'][1]}" for c in cols]),
+             ("training steps on the back after the warm-up: mean share (runs' range)",
+              ["-" if not c["on_back_share"] else
+               "{:.1%} ({:.1%}-{:.1%})".format(*c["on_back_share"]) for c in cols]),
              ("seconds per iteration after the warm-up, median",
               [_g(c["s_per_iteration"], ".2f") for c in cols])]
     lines = ["| | " + " | ".join(labels) + " |", "|---|" + "---|" * len(labels)]

@@ -118,3 +118,24 @@ def test_cli_output_cut_short_by_its_reader_is_no_error(tmp_path):
     reader.wait()
     assert writer.returncode == 141, writer.stderr
     assert "error" not in writer.stderr.lower() and "Traceback" not in writer.stderr
+
+
+def test_training_time_on_the_back_is_averaged_after_the_warm_up(tmp_path):
+    def run(name, shares):
+        d = tmp_path / name
+        d.mkdir()
+        with open(d / "metrics.csv", "w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(["iteration", "episodes", "wall_clock", "train/warmup",
+                        "train/on_back_share"])
+            for i, (warm, v) in enumerate(shares):
+                w.writerow([i + 1, 10 * i, i, warm, v])
+        return str(d)
+    a = run("a", [(1, 0.5), (0, 0.1), (0, 0.3)])         # the warm-up's 0.5 is left out
+    b = run("b", [(0, 0.0), (0, 0.0)])
+    assert C.read_run(a, (0.5,), (1,))["on_back_share"] == pytest.approx(0.2)
+    assert C.read_run(_run(tmp_path / "old", SLOW), (0.5,), (1,))["on_back_share"] is None
+    res = C.compare([f"X={a}", f"X={b}"], levels=(0.5,), mature=(1,))
+    assert res["X"]["summary"]["on_back_share"] == pytest.approx([0.1, 0.0, 0.2])
+    assert ("| training steps on the back after the warm-up: mean share (runs' range) "
+            "| 10.0% (0.0%-20.0%) |") in C.format_table(res)
