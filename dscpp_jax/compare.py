@@ -71,9 +71,15 @@ def seconds_per_iteration(metrics: dict) -> Optional[float]:
             return None
         per = [math.nan] + [(wall[i] - wall[i - 1]) / max(it[i] - it[i - 1], 1.0)
                             for i in range(1, len(wall))]
-    vals = [p for i, p in enumerate(per)
-            if math.isfinite(p) and not (warm and math.isfinite(warm[i]) and warm[i] > 0)]
+    vals = _after_warmup(per, warm)
     return statistics.median(vals) if vals else None
+
+
+def _after_warmup(values, warm) -> list:
+    """The finite ``values`` of the rows logged after the warm-up (``warm``: the
+    ``train/warmup`` column, or None where the run did not log it)."""
+    return [v for i, v in enumerate(values)
+            if math.isfinite(v) and not (warm and math.isfinite(warm[i]) and warm[i] > 0)]
 
 
 def on_back_share(metrics: dict) -> Optional[float]:
@@ -82,8 +88,7 @@ def on_back_share(metrics: dict) -> Optional[float]:
     share, warm = metrics.get("train/on_back_share"), metrics.get("train/warmup")
     if not share:
         return None
-    vals = [v for i, v in enumerate(share)
-            if math.isfinite(v) and not (warm and math.isfinite(warm[i]) and warm[i] > 0)]
+    vals = _after_warmup(share, warm)
     return statistics.mean(vals) if vals else None
 
 
