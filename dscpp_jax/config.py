@@ -40,7 +40,7 @@ RETIRED_FIELDS: dict[str, Any] = dict(
     td3_upright_weight=0.0, td3_upright_min=0.5, td3_absorb_fallen=False,
     mpc_upright_weight=0.0, mpc_upright_min=0.5, gestation_patience=0,
     frontier_metric="euclidean", frontier_stall=0, svc_bound=0.0, frontier_anchor=0.0,
-    warmup_episode_length=0, fall_is_terminal=False)
+    warmup_episode_length=0, fall_is_terminal=False, frontier_task_start=False)
 # Fields only the host driver reads (the TrainState carries `Config.device_view()`).
 HOST_ONLY_DEFAULTS = dict(seed=0, total_env_steps=1, total_episodes=0, eval_every=0,
                           log_every=1, checkpoint_every=0, keep_checkpoints=1, preset="paper")
@@ -98,10 +98,6 @@ class Config:
                                        # examples (longer links; 0: anywhere on the frontier)
     frontier_candidates: int = 512
     frontier_min_open: int = 4
-    frontier_task_start: bool = False  # while no option holds the task start and it lies within
-                                       # frontier_radius of a mature option's examples, those
-                                       # options are the only open frontier and frontier starts
-                                       # begin at the task start
     eval_prefer_pessimistic: bool = True  # evaluation's policy over options tries pessimistic
                                        # regions first (False: the paper's walk, as in training)
 
@@ -235,7 +231,7 @@ class Config:
         is off, and the frontier starts' inner radius where only frontier parents are on."""
         if not self.frontier_on:
             return frozenset({"frontier_radius", "frontier_inner_radius", "frontier_candidates",
-                              "frontier_min_open", "frontier_task_start"})
+                              "frontier_min_open"})
         return frozenset() if self.frontier_start_prob > 0 else frozenset({"frontier_inner_radius"})
 
     # ------------------------------------------------------------------------------------------
@@ -383,9 +379,6 @@ class Config:
         need(self.frontier_start_prob == 0 and not self.frontier_parent or self.hierarchical,
              f"frontier_start_prob and frontier_parent act on the skill chain: algo={self.algo!r} "
              f"has none; use one of {HIERARCHICAL_ALGOS} or leave them off")
-        need(not self.frontier_task_start or self.frontier_on,
-             "frontier_task_start puts the task start on the chain's frontier: it needs "
-             "frontier_start_prob > 0 or frontier_parent=true")
         need(0 <= self.frontier_inner_radius < self.frontier_radius,
              f"frontier_inner_radius={self.frontier_inner_radius} and frontier_radius="
              f"{self.frontier_radius}: need 0 <= frontier_inner_radius < frontier_radius")

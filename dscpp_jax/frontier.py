@@ -17,13 +17,7 @@ of one probe address that:
   whose frontier is still open, and an option in gestation whose target's frontier has closed (a
   filled dead end) is re-targeted there, its examples cleared. The chain becomes a tree whose
   branches end in dead ends; the policy over options still walks the rows in increasing index
-  (every parent is older than its child);
-- **the task start on the frontier** (``Config.frontier_task_start``): while no mature option
-  holds the task start and it lies within ``radius`` of a mature row's examples
-  (:func:`start_near`, no inner radius), those rows are the only open frontier, so the next link
-  targets the newest of them, and frontier starts for a link that targets one of them begin at the
-  task start (:func:`with_task_start`). Without it a chain that passes within the inner radius of
-  the start without covering it keeps growing past it into the next dead end.
+  (every parent is older than its child).
 
 The probe is a Monte Carlo estimate from candidate states drawn by the env's diverse-start sampler
 (uniform over free space, the same knowledge diverse starts already use): candidate ``m`` is on the
@@ -69,27 +63,6 @@ def frontier_probe(chain: Chain, cand_xy, radius: float, inner: float = 0.0) -> 
 def open_rows(probe: jax.Array, min_count: int) -> jax.Array:
     """(K,) bool: rows with at least ``min_count`` frontier candidates (an open frontier)."""
     return jnp.sum(probe, axis=1) >= min_count
-
-
-def start_near(chain: Chain, start_xy, radius: float) -> jax.Array:
-    """(K,) bool: mature rows whose positive states inside their pessimistic region lie within
-    ``radius`` of ``start_xy`` (2,), while no mature option's initiation set holds it."""
-    start = jnp.asarray(start_xy, jnp.float32)
-    if start.shape != (2,):
-        raise ValueError(f"start_near: start_xy must have shape (2,), got {start.shape}")
-    return frontier_probe(chain, start[None], radius, 0.0)[:, 0]
-
-
-def with_task_start(chain: Chain, cand_xy, pool, near, start_xy):
-    """The frontier-start pool with the task start appended as candidate M: (M + 1, 2) candidates
-    and (M + 1,) pool, which holds only the task start when the link in gestation targets a row of
-    ``near`` (:func:`start_near`) and is ``pool`` plus an excluded task start otherwise."""
-    g = gestation_row(chain)
-    p = chain.parent[jnp.clip(g, 0)]
-    at_start = near[jnp.clip(p, 0)] & (g >= 0) & (p >= 0)
-    cand = jnp.concatenate([jnp.asarray(cand_xy, jnp.float32),
-                            jnp.asarray(start_xy, jnp.float32)[None]], axis=0)
-    return cand, jnp.concatenate([pool & ~at_start, at_start[None]], axis=0)
 
 
 def gestation_row(chain: Chain) -> jax.Array:

@@ -743,10 +743,6 @@ def _learn(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[str
             is_open = frontier.open_rows(frontier.frontier_probe(chain, cand,
                                                                  config.frontier_radius),
                                          config.frontier_min_open)
-            if config.frontier_task_start:
-                near = frontier.start_near(chain, env.start, config.frontier_radius)
-                is_open = jnp.where(near.any(), near, is_open)
-                metrics["frontier/start_near"] = near.any().astype(jnp.float32)
             g0, p0 = frontier.gestation_row(chain), chain.parent
             chain = _grow_chain(config, chain, jnp.asarray(env.start, jnp.float32), is_open)
             g = frontier.gestation_row(chain)
@@ -1022,12 +1018,8 @@ def _frontier_pool(config: Config, env, chain, key):
     """(candidates (M, 2), pool (M,) bool): where this iteration's frontier starts come from."""
     from dscpp_jax import frontier
     cand = _frontier_candidates(config, env, key)
-    pool = frontier.start_pool(chain, frontier.frontier_probe(
+    return cand, frontier.start_pool(chain, frontier.frontier_probe(
         chain, cand, config.frontier_radius, config.frontier_inner_radius))
-    if not config.frontier_task_start:
-        return cand, pool
-    near = frontier.start_near(chain, env.start, config.frontier_radius)
-    return frontier.with_task_start(chain, cand, pool, near, env.start)
 
 
 def _dp_value_table(config: Config, chain, td3):

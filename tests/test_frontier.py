@@ -118,42 +118,6 @@ def test_a_new_option_targets_the_newest_open_row(two_links):
     assert int(_grow_with(ch, [False] * 5).parent[4]) == 3
 
 
-def test_the_task_start_on_the_frontier(two_links):
-    ch = two_links
-    radius = 3.0
-    covered = lambda xy: bool(O.start_covered(ch, np.asarray(xy, np.float32)))
-    for start in ([0.0, 1.5], [2.5, 7.0], [0.0, -8.0], [0.0, 4.0]):
-        near = np.asarray(jax.jit(F.start_near, static_argnums=2)(ch, np.float32(start), radius))
-        want = np.zeros(CFG.max_options, bool)
-        for k in range(CFG.max_options):
-            if int(ch.status[k]) == M and not covered(start):
-                ok = np.asarray(ch.pess_ok[k]).reshape(-1)
-                pts = np.asarray(ch.pos_xy[k]).reshape(-1, 2)[ok]
-                want[k] = np.linalg.norm(pts - np.float32(start), axis=-1).min() <= radius
-        np.testing.assert_array_equal(near, want)
-    # next to link 2 (which the link in gestation targets), far from the goal option, uncovered
-    start = np.float32([0.0, 1.5])
-    assert not covered(start)
-    near = F.start_near(ch, start, radius)
-    np.testing.assert_array_equal(near, [False, False, True, False, False])
-    cand = np.stack([np.arange(6) + 100.0, np.zeros(6)], -1).astype(np.float32)
-    pool = jnp.asarray([1, 0, 1, 0, 0, 1], bool)
-    c2, p2 = F.with_task_start(ch, cand, pool, near, start)
-    assert c2.shape == (7, 2) and p2.shape == (7,)
-    np.testing.assert_array_equal(np.asarray(c2[-1]), start)
-    np.testing.assert_array_equal(p2, [0, 0, 0, 0, 0, 0, 1])      # only the task start
-    # the link in gestation targets a row the start is not near: the pool stays, start excluded
-    _, p3 = F.with_task_start(ch, cand, pool, jnp.asarray([False, True, False, False, False]),
-                              start)
-    np.testing.assert_array_equal(p3, [1, 0, 1, 0, 0, 1, 0])
-    # no link in gestation: nothing to start for
-    idle = ch.replace(status=jnp.array([A, M, M, M, FR]))
-    np.testing.assert_array_equal(F.with_task_start(idle, cand, pool, near, start)[1],
-                                  [1, 0, 1, 0, 0, 1, 0])
-    with pytest.raises(ValueError, match="shape"):
-        F.start_near(ch, np.zeros(3, np.float32), radius)
-
-
 def test_diverse_starts_take_the_frontier_share():
     cfg = tiny("mb_dscpp", num_envs=64, frontier_start_prob=0.5, task_start_prob=0.25)
     env = T.make_env(cfg)
@@ -174,20 +138,17 @@ def test_diverse_starts_take_the_frontier_share():
     np.testing.assert_array_equal(np.asarray(none), plain)
 
 
-@pytest.mark.parametrize("task_start", [False, True])
-def test_training_with_the_frontier_runs_and_groups_equal_separate_runs(task_start):
+def test_training_with_the_frontier_runs_and_groups_equal_separate_runs():
     # both uses on, under a seed vmap and alone (the logic itself: the tests above)
     cfg = tiny("mf_dscpp", frontier_start_prob=0.5, frontier_parent=True, frontier_candidates=64,
-               frontier_radius=4.0, frontier_min_open=2, frontier_task_start=task_start)
+               frontier_radius=4.0, frontier_min_open=2)
     keys = jax.random.split(jax.random.PRNGKey(5), 2)
     states = jax.vmap(lambda k: T.init(k, cfg))(keys)
     vstep = jax.jit(T.train_step_group_impl)
     for _ in range(8):      # past the warm-up, into chain growth
         states, vm = vstep(states)
-    names = ("frontier/retargeted", "frontier/open_rows", "frontier/pool")
-    for name in names + (("frontier/start_near",) if task_start else ()):
+    for name in ("frontier/retargeted", "frontier/open_rows", "frontier/pool"):
         assert np.all(np.isfinite(np.asarray(vm[name])))
-    assert ("frontier/start_near" in vm) == task_start
     s = T.init(keys[1], cfg)
     for _ in range(8):
         s, m = T.train_step(s)
@@ -207,12 +168,6 @@ def test_training_with_the_frontier_runs_and_groups_equal_separate_runs(task_sta
 def test_bad_frontier_settings_are_refused(kw, match):
     with pytest.raises(ValueError, match=match):
         tiny("mb_dscpp", **kw).validate()
-
-
-def test_the_task_start_on_the_frontier_needs_the_frontier():
-    with pytest.raises(ValueError, match="frontier_task_start"):
-        tiny("mb_dscpp", frontier_task_start=True).validate()
-    tiny("mb_dscpp", frontier_task_start=True, frontier_parent=True).validate()
 
 
 def test_frontier_needs_a_skill_chain():
