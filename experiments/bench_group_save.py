@@ -20,18 +20,20 @@ import jax.numpy as jnp
 import orbax.checkpoint as ocp
 
 
-def main():
+def main(argv=None):
     ap = argparse.ArgumentParser()
     ap.add_argument("--seeds", type=int, default=15)
-    ap.add_argument("--small", type=int, default=340)
+    ap.add_argument("--small", type=int, default=340, help="number of small arrays")
+    ap.add_argument("--buffer-rows", type=int, default=1_000_000,
+                    help="rows of the large replay-like buffer (the model buffer has 0.3 of them)")
     ap.add_argument("--rounds", type=int, default=4)
     ap.add_argument("--out", default=None)
-    a = ap.parse_args()
+    a = ap.parse_args(argv)
     compiles = [0]   # XLA compile events while a save runs
     jax.monitoring.register_event_duration_secs_listener(
         lambda e, d, **k: compiles.__setitem__(0, compiles[0] + ("backend_compile" in e)))
     G = a.seeds
-    shapes = [(G, 1_000_000, 20), (G, 300_000, 32)] + [
+    shapes = [(G, a.buffer_rows, 20), (G, max(1, int(0.3 * a.buffer_rows)), 32)] + [
         (G, (i % 37) + 1, (i % 11) + 1) for i in range(a.small)]
     tree = {f"a{i:03d}": jnp.full(s, i, jnp.float32) for i, s in enumerate(shapes)}
     bump = jax.jit(lambda t: jax.tree_util.tree_map(lambda x: x + 1, t))
@@ -58,9 +60,12 @@ def main():
         r = dict(step=step, hold_s=round(time.perf_counter() - t, 3), compiles=compiles[0] - c0)
         del h
         res["device_get"].append(r); print("device_get", r, flush=True)
+    m.close()
     shutil.rmtree(d, ignore_errors=True)
     if a.out:
-        json.dump(res, open(a.out, "w"), indent=1)
+        with open(a.out, "w") as f:
+            json.dump(res, f, indent=1)
+    return res
 
 
 if __name__ == "__main__":

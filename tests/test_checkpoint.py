@@ -161,3 +161,28 @@ def test_bench_checkpoint_smoke(tmp_path):
     np.testing.assert_array_equal(got["i"], tree["i"])
     np.testing.assert_array_equal(jax.random.key_data(got["k"]), jax.random.key_data(tree["k"]))
     assert got["e"].shape == (0,)
+
+
+def test_bench_group_save_smoke(tmp_path):
+    """experiments/bench_group_save.py on a small synthetic group state: every round of both
+    ways timed, compile counts recorded, the JSON written."""
+    import importlib.util
+    import json as _json
+    import os
+    path = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "experiments",
+                        "bench_group_save.py")
+    spec = importlib.util.spec_from_file_location("bench_group_save", path)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    out = str(tmp_path / "g.json")
+    res = bench.main(["--seeds", "2", "--small", "5", "--buffer-rows", "100000", "--rounds", "2",
+                      "--out", out])
+    assert res == _json.load(open(out))
+    assert res["seeds"] == 2 and res["arrays"] == 7 and res["gbytes"] > 0.02
+    assert res["gbytes"] == round((2 * 100000 * 20 + 2 * 30000 * 32
+                                   + sum(2 * ((i % 37) + 1) * ((i % 11) + 1) for i in range(5)))
+                                  * 4 / 1e9, 3)
+    for way in ("orbax_async", "device_get"):
+        assert [r["step"] for r in res[way]] == [0, 1]
+        assert all(r["hold_s"] >= 0 and isinstance(r["compiles"], int) for r in res[way])
+    assert all(r["total_s"] >= r["hold_s"] for r in res["orbax_async"])
