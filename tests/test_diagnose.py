@@ -41,8 +41,14 @@ def test_each_failure_gets_its_verdict(tmp_path):
                  {"eval/success_rate": 0.0}, "table full"),
         "stalled": ({"options/gestation_executions": 1200, "options/gestation_parent": 15},
                     {"eval/success_rate": 0.0}, "stalled link (targets option 15, 1200 executions)"),
-        "slow": ({"options/gestation_executions": 1200, "options/gestation_successes": 2},
-                 {"eval/success_rate": 0.0}, "not covered"),
+        "slow": ({"options/gestation_executions": 1200, "options/gestation_successes": 2,
+                  "options/gestation_parent": 12},
+                 {"eval/success_rate": 0.0},
+                 "not covered (link in gestation towards option 12: 1200 executions, 2 successes)"),
+        "growing": ({"options/gestation_executions": 40, "options/gestation_successes": 1,
+                     "options/gestation_parent": 9},
+                    {"eval/success_rate": 0.0},
+                    "not covered (link in gestation towards option 9: 40 executions, 1 success)"),
         # the in-band window still saw the chain work; the final evaluation did not
         "late": ({"options/start_covered": 1, "inband/success_rate": 0.97},
                  {"eval/success_rate": 0.0, "eval/option_success/23": 0.0},
@@ -67,8 +73,10 @@ def test_each_failure_gets_its_verdict(tmp_path):
     # the summary counts kinds, details left out: "weak link 7" and "weak link 23" are one kind
     assert D.verdict_kind("stalled link (targets option 15, 1200 executions)") == "stalled link"
     assert D.verdict_kind("falls; weak links 3, 4") == "falls; weak link"
+    assert D.verdict_kind("not covered (link in gestation towards option 12: 1200 executions, "
+                          "2 successes)") == "not covered"
     summary = D.format_summary([D.diagnose_run(str(tmp_path / n)) for n in cases])
-    assert summary == ("10 runs: falls 2, solved 2, broke late 1, not covered 1, "
+    assert summary == ("11 runs: falls 2, not covered 2, solved 2, broke late 1, "
                        "stalled link 1, start covered, failing on the way 1, table full 1, "
                        "weak link 1")
     # mean ± s.e. over the runs, worked by hand: (1, 0.5, 0) -> 0.50 ± sqrt(0.25 / 3);
