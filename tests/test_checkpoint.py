@@ -133,14 +133,10 @@ def test_resume_equivalence(tmp_path, algo):
 
 def test_bench_checkpoint_smoke(tmp_path):
     """experiments/bench_checkpoint.py on a point maze: one run and a 2-seed group, both ways."""
-    import importlib.util
     import json
-    import os
-    path = os.path.join(os.path.dirname(os.path.dirname(__file__)), "experiments",
-                        "bench_checkpoint.py")
-    spec = importlib.util.spec_from_file_location("bench_checkpoint", path)
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+
+    from tests.experiment_scripts import load
+    bench = load("bench_checkpoint")
     out = str(tmp_path / "b.json")
     assert bench.main(["--env", "point_u_maze", "--algo", "td3_her", "--seeds-list", "1,2",
                        "--repeat", "1", "--filled", "--dir", str(tmp_path / "ck"),
@@ -166,14 +162,10 @@ def test_bench_checkpoint_smoke(tmp_path):
 def test_bench_group_save_smoke(tmp_path):
     """experiments/bench_group_save.py on a small synthetic group state: every round of both
     ways timed, compile counts recorded, the JSON written."""
-    import importlib.util
     import json as _json
-    import os
-    path = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "experiments",
-                        "bench_group_save.py")
-    spec = importlib.util.spec_from_file_location("bench_group_save", path)
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+
+    from tests.experiment_scripts import load
+    bench = load("bench_group_save")
     out = str(tmp_path / "g.json")
     res = bench.main(["--seeds", "2", "--small", "5", "--buffer-rows", "100000", "--rounds", "2",
                       "--out", out])

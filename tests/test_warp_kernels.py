@@ -109,12 +109,8 @@ def test_dry_run_is_confined_to_its_thread_and_restores_warp():
 
 
 def test_bench_warp_build_rejects_bad_settings():
-    import importlib.util
-    import os
-    path = os.path.join(os.path.dirname(os.path.dirname(__file__)), "experiments", "bench_warp_build.py")
-    spec = importlib.util.spec_from_file_location("bench_warp_build", path)
-    B = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(B)
+    from tests.experiment_scripts import load
+    B = load("bench_warp_build")
     for argv in (["--workers", "-1"], ["--repeat", "0"]):
         with pytest.raises(SystemExit):
             B.main(argv)
