@@ -254,22 +254,59 @@ def _eval_iteration(seed_dir: str) -> Optional[int]:
 
 
 def _frontier_note(data, args) -> str:
-    """A sentence for the protocol line where the preset gave some skill chains the chain's
-    frontier (beyond the paper; dscpp_jax.config.FRONTIER_PRESET), else ""."""
+    """A sentence for the protocol line on what the preset adds beyond the paper for the groups
+    of this call: the chain's frontier for some skill chains (dscpp_jax.config.FRONTIER_PRESET)
+    and, on the medium maze, the option rows, MB-DSC++'s TD3 ratio and the model-free learners'
+    TD3 (MEDIUM_MODEL_FREE_TD3); else ""."""
     from dscpp_jax.config import FRONTIER_PRESET, preset
+    envs = {e.run_env(args.env_map) for e in data.info}
     mazes = sorted({e.env for e in data.info
                     if preset(args.preset, e.run_env(args.env_map), e.algo).frontier_on})
-    if not mazes:
+    parts = []
+    if mazes:
+        sets = " ".join(f"{k}={str(v).lower() if isinstance(v, bool) else format(v, 'g')}"
+                        for k, v in FRONTIER_PRESET.items())
+        parts.append(f"the preset's skill chains on {' and '.join(mazes)} use the chain's "
+                     f"frontier (`{sets}`; `docs/training.md`, \"The chain's frontier\")")
+    if "medium" in envs:
+        mb = preset(args.preset, "medium", "mb_dscpp")
+        ratio = mb.td3_updates_per_step
+        extra = []
+        if mb.max_options != preset(args.preset, "u_maze", "mb_dscpp").max_options:
+            extra.append(f"every skill chain {mb.max_options} option rows")
+        if ratio != preset(args.preset, "u_maze", "mb_dscpp").td3_updates_per_step:
+            extra.append(f"MB-DSC++ {ratio:g} TD3 step{'' if ratio == 1 else 's'} per transition")
+        mf, mf_u = (preset(args.preset, m, "mf_dscpp") for m in ("medium", "u_maze"))
+        if (mf.her_strategy, mf.her_relabel_prob, mf.td3_action_l2) != (
+                mf_u.her_strategy, mf_u.her_relabel_prob, mf_u.td3_action_l2):
+            extra.append(f"every model-free learner HER's `{mf.her_strategy}` strategy with "
+                         f"{mf.her_relabel_prob:g} of the sampled transitions relabelled and an "
+                         f"action penalty of {mf.td3_action_l2:g} (MF-DSC++, DSC, dual and "
+                         f"TD3+HER alike)")
+        if extra:
+            parts.append("on the medium maze: " + ", ".join(extra[:-1])
+                         + (" and " if len(extra) > 1 else "") + extra[-1])
+    if not parts:
         return ""
-    sets = " ".join(f"{k}={str(v).lower() if isinstance(v, bool) else format(v, 'g')}"
-                    for k, v in FRONTIER_PRESET.items())
-    mb = preset(args.preset, "medium", "mb_dscpp")
-    ratio = mb.td3_updates_per_step
-    return (f" Beyond the paper, the preset's skill chains on {' and '.join(mazes)} use the "
-            f"chain's frontier (`{sets}`; `docs/training.md`, \"The chain's frontier\")"
-            + (f", and MB-DSC++ {mb.max_options} option rows and {ratio:g} TD3 "
-               f"step{'' if ratio == 1 else 's'} per transition on the medium maze."
-               if "medium" in mazes else "."))
+    return " Beyond the paper, " + "; ".join(parts) + "."
+
+
+def mismatch_lines(data, args) -> list:
+    """One line per group on disk that was made with other settings than this call would train
+    it with (`config_mismatch`): the figures draw it as made, and the training leaves it as it
+    is, so the README says so."""
+    out = []
+    for exp, info in data.info.items():
+        if not os.path.exists(os.path.join(info["dir"], "group.json")):
+            continue
+        try:
+            bad = config_mismatch(info["dir"], exp, args)
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            bad = [f"config unreadable ({e})"]
+        if bad:
+            out.append(f"- `{os.path.basename(os.path.normpath(info['dir']))}`: "
+                       + "; ".join(bad))
+    return out
 
 
 def config_mismatch(group_dir: str, exp: Exp, args) -> list:
@@ -1227,6 +1264,13 @@ def write_readme(data: Data, args, figures: dict, status: dict) -> str:
         lines += ["", "How each group's seeds end (`python -m dscpp_jax.cli diagnose GROUP_DIR` "
                   "gives the row per seed; the verdicts are explained in `docs/training.md`):", ""]
         lines += why
+    other = mismatch_lines(data, args)
+    if other:
+        lines += ["", "Groups made with other settings than this version's preset and this "
+                  "call's sets (the figures and claims above show them as made; to train one "
+                  "with the current settings, move its directory away and run the command "
+                  "without `--report-only`):", ""]
+        lines += other
     if status:
         lines += ["", "Runs (this call):", ""]
         lines += [f"- `{k}`: {v}" for k, v in status.items()]

@@ -590,6 +590,56 @@ def test_protocol_line_names_what_the_preset_adds_beyond_the_paper():
                                        reproduce.Exp("u_maze", "mf_dscpp", 2001, "0-4")])
     note = reproduce._frontier_note(data, args)
     assert "skill chains on medium use the chain's frontier" in note
-    assert "MB-DSC++ 32 option rows and 1 TD3 step per transition on the medium maze" in note
+    assert ("on the medium maze: every skill chain 32 option rows, MB-DSC++ 1 TD3 step per "
+            "transition and every model-free learner HER's `future` strategy with 0.8") in note
     data.info = data.info[1:]          # U-maze only: nothing beyond the paper to name
     assert reproduce._frontier_note(data, args) == ""
+    # the flat learners on the medium maze: no frontier, but the model-free TD3 is named
+    data.info = [reproduce.Exp("medium", "td3_her", 2001, "0-4")]
+    note = reproduce._frontier_note(data, args)
+    assert "frontier" not in note and "action penalty of 2 (MF-DSC++, DSC, dual and TD3+HER" in note
+
+
+def test_medium_model_free_learners_share_one_td3_configuration():
+    """On the medium maze every model-free learner gets the same TD3 (HER `future` at 0.8, the
+    action penalty of 2), every skill chain 32 rows; the model-based learners keep theirs, and
+    the other mazes keep the ant preset's."""
+    from dscpp_jax.config import MEDIUM_MODEL_FREE_TD3, MODEL_BASED_ALGOS, preset
+    td3 = lambda c: (c.her_strategy, c.her_relabel_prob, c.td3_action_l2, c.td3_updates_per_step,
+                     c.td3_batch_size, c.td3_lr, c.td3_dtype)
+    free = [preset("fast", "medium", a) for a in ("mf_dscpp", "dsc", "dual", "td3_her")]
+    assert len({td3(c) for c in free}) == 1
+    assert td3(free[0])[:3] == ("future", 0.8, 2.0) == tuple(MEDIUM_MODEL_FREE_TD3[k] for k in (
+        "her_strategy", "her_relabel_prob", "td3_action_l2"))
+    assert [c.max_options for c in free] == [32, 32, 32, 24]
+    for a in MODEL_BASED_ALGOS:
+        c = preset("fast", "medium", a)
+        assert (c.her_strategy, c.td3_action_l2) == ("final", 0.0)
+    assert preset("fast", "medium", "mb_dscpp").max_options == 32
+    for env in ("u_maze", "four_rooms", "large", "point_medium"):
+        c = preset("fast", env, "mf_dscpp")
+        assert c.her_strategy == "final" and c.td3_action_l2 != 2.0
+    # a user's --set still wins
+    assert preset("fast", "medium", "dsc", her_strategy="final").her_strategy == "final"
+
+
+def test_readme_lists_groups_made_with_other_settings(tmp_path):
+    """A group on disk whose config differs from what the call would train it with is named in
+    the generated README with the fields that differ; a matching group is not."""
+    import types
+    from dscpp_jax.config import preset
+    args = reproduce.build_parser().parse_args(["--runs-root", str(tmp_path), "--out", str(tmp_path)])
+    args.env_map = {}
+    old, new = (reproduce.Exp("medium", a, 2001, "0-4") for a in ("dsc", "mb_dscpp"))
+    info = {}
+    for exp, cfg in ((old, dict(dataclasses.asdict(preset("fast", "medium", "dsc", td3_dtype="float32")),
+                                her_strategy="final", td3_action_l2=1.0)),
+                     (new, dataclasses.asdict(preset("fast", "medium", "mb_dscpp", td3_dtype="float32")))):
+        gdir = tmp_path / exp.name({})
+        gdir.mkdir()
+        (gdir / "group.json").write_text(json.dumps({"seeds": [0], "config": cfg}))
+        info[exp] = dict(dir=str(gdir), seeds=[])
+    info[reproduce.Exp("u_maze", "dsc", 2001, "0-4")] = dict(dir=str(tmp_path / "none"), seeds=[])
+    lines = reproduce.mismatch_lines(types.SimpleNamespace(info=info), args)
+    assert lines == ["- `medium-dsc-g0-4`: her_strategy='final' (asked: 'future'); "
+                     "td3_action_l2=1.0 (asked: 2.0)"]
