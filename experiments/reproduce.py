@@ -16,8 +16,11 @@ appendix Figure 1's own runs, `-optcritic` for appendix Figure 2's one critic pe
 the next call finds it; figures that need the same group (MF-DSC++ on U-maze: Figures 5, 6, A2,
 A3) share it, trained once. A group whose seeds have all reached the schedule is skipped, one
 with a checkpoint is continued with `train --resume` (also to a longer --episodes), one without
-a checkpoint (killed before its first) is moved aside and started again. A group made with other
-settings (--set, --preset) is left alone, with a message. `--time-budget` bounds each train call
+a checkpoint (killed before its first) is moved aside and started again. Where no group of
+exactly the asked seeds exists, a figure takes them from the smallest larger group of the same
+algorithm, env, subgoal and tag (seeds 0-4 of `medium-mf_dscpp-g0-14`). A group made with other
+settings (--set, --preset) is left alone, with a message, and the README lists it with the
+settings that differ. `--time-budget` bounds each train call
 (it checkpoints and stops) and `--stop-after` the whole call, for jobs with a wall-clock limit
 (calls still waiting for a GPU get what is left; none starts with less than `--min-call`); the
 figures are drawn from whatever has been trained, and the README
@@ -37,6 +40,7 @@ import csv
 import dataclasses
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -177,6 +181,52 @@ def say(msg: str, flush: bool = True) -> None:
         sys.stdout.flush()
 
 
+def group_dir(exp: Exp, args) -> str:
+    """Where an experiment's group lives under --runs-root: the directory named after it
+    (`Exp.name`) when there is one; else the smallest group of the same env, algorithm, subgoal
+    rule and tag whose seeds include the asked ones (seeds 0-4 of a 15-seed group
+    `medium-mf_dscpp-g0-14`: the seeds of a group are independent runs, so a figure may take
+    some of them); else the named path, where a new group trains."""
+    from dscpp_jax.seed_group import parse_seeds
+    path = os.path.join(args.runs_root, exp.name(args.env_map))
+    if os.path.exists(path):
+        return path
+    want = set(parse_seeds(exp.seeds))
+    sub = "-dp" if exp.subgoal == "dp" else ""
+    tag = f"-{exp.tag}" if exp.tag else ""
+    pattern = re.compile(re.escape(f"{exp.run_env(args.env_map)}-{exp.algo}{sub}-g")
+                         + r"[0-9][0-9,\-]*" + re.escape(tag) + "$")
+    try:
+        names = sorted(os.listdir(args.runs_root))
+    except OSError:
+        return path
+    best = None
+    for d in names:
+        if not pattern.match(d):
+            continue
+        try:
+            with open(os.path.join(args.runs_root, d, "group.json")) as f:
+                seeds = {int(x) for x in json.load(f)["seeds"]}
+        except (OSError, ValueError, KeyError, TypeError):
+            continue
+        if want <= seeds and (best is None or len(seeds) < best[0]):
+            best = (len(seeds), d)
+    return os.path.join(args.runs_root, best[1]) if best else path
+
+
+def shown_name(exp: Exp, gdir: str) -> str:
+    """A group's directory name, with the seeds taken from it where it holds more."""
+    from dscpp_jax.seed_group import format_seeds, parse_seeds
+    name = os.path.basename(os.path.normpath(gdir))
+    try:
+        with open(os.path.join(gdir, "group.json")) as f:
+            have = sorted(int(x) for x in json.load(f)["seeds"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return name
+    want = sorted(parse_seeds(exp.seeds))
+    return name if want == have else f"{name} (seeds {format_seeds(want)} of it)"
+
+
 def checkpoint_steps(group_dir: str) -> list:
     d = os.path.join(group_dir, "checkpoints")
     if not os.path.isdir(d):
@@ -304,7 +354,7 @@ def mismatch_lines(data, args) -> list:
         except (OSError, ValueError, KeyError, TypeError) as e:
             bad = [f"config unreadable ({e})"]
         if bad:
-            out.append(f"- `{os.path.basename(os.path.normpath(info['dir']))}`: "
+            out.append(f"- `{info.get('name', os.path.basename(os.path.normpath(info['dir'])))}`: "
                        + "; ".join(bad))
     return out
 
@@ -377,10 +427,14 @@ def train_command(exp: Exp, group_dir: str, args, resume: bool,
 def train_one(exp: Exp, args, gpus, per_gpu: int = 1) -> str:
     """Train, continue or skip one group; returns its status word. `gpus`: a queue of GPU ids
     (or None) of which the call takes one; `per_gpu`: how many calls share each of them."""
-    name = exp.name(args.env_map)
-    gdir = os.path.join(args.runs_root, name)
+    gdir = group_dir(exp, args)
     sched = schedule(exp, args)
     st = group_state(gdir, sched)
+    named = os.path.join(args.runs_root, exp.name(args.env_map))
+    if st in ("new", "stale") and gdir != named:   # a larger group with nothing to resume:
+        gdir = named                               # train the asked seeds under their own name
+        st = group_state(gdir, sched)
+    name = os.path.basename(gdir)
     if st in ("finished", "unfinished"):
         bad = config_mismatch(gdir, exp, args)
         if bad:
@@ -513,8 +567,7 @@ def check_slot_sizes(figs: dict, slots: list, args) -> None:
     from dscpp_jax.seed_group import parse_seeds
     env_map = args.env_map
     for e in dict.fromkeys(e for es in figs.values() for e in es):
-        if group_state(os.path.join(args.runs_root, e.name(env_map)),
-                       schedule(e, args)) == "finished":
+        if group_state(group_dir(e, args), schedule(e, args)) == "finished":
             continue
         n = len(parse_seeds(e.seeds))
         for slot in slots:
@@ -626,12 +679,15 @@ class Data:
     """What the runs hold, per experiment: seed dirs, finished or not."""
 
     def __init__(self, args, figs: dict):
+        from dscpp_jax.seed_group import parse_seeds
         self.args = args
         self.figs = figs
         self.info = {}
         for exp in dict.fromkeys(e for es in figs.values() for e in es):
-            gdir = os.path.join(args.runs_root, exp.name(args.env_map))
-            self.info[exp] = dict(dir=gdir, seeds=seed_dirs(gdir),
+            gdir = group_dir(exp, args)
+            want = {f"s{s}" for s in parse_seeds(exp.seeds)}
+            self.info[exp] = dict(dir=gdir, name=shown_name(exp, gdir),
+                                  seeds=[d for d in seed_dirs(gdir) if os.path.basename(d) in want],
                                   finished=group_state(gdir, schedule(exp, args)) == "finished")
 
     def dirs(self, exp):
@@ -1198,7 +1254,7 @@ def failure_lines(data: Data) -> list:
             except ValueError:   # no metrics yet, or no skill chain (flat learners)
                 continue
         if rows:
-            out.append(f"- `{os.path.basename(os.path.normpath(info['dir']))}`: "
+            out.append(f"- `{info.get('name', os.path.basename(os.path.normpath(info['dir'])))}`: "
                        f"{diagnose.format_summary(rows)}")
     return out
 

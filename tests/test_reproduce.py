@@ -643,3 +643,59 @@ def test_readme_lists_groups_made_with_other_settings(tmp_path):
     lines = reproduce.mismatch_lines(types.SimpleNamespace(info=info), args)
     assert lines == ["- `medium-dsc-g0-4`: her_strategy='final' (asked: 'future'); "
                      "td3_action_l2=1.0 (asked: 2.0)"]
+
+
+def test_a_figure_takes_its_seeds_from_a_larger_group(tmp_path, capsys):
+    """Seeds 0-1 of a finished 4-seed group `point_u_maze-dsc-g0-3` serve a figure that asks for
+    seeds 0-1 when no `-g0-1` group exists: its two seed directories are drawn, the group is
+    skipped as finished, and a group named after the asked seeds wins where there is one. A
+    larger group with nothing to resume does not take the asked seeds' training."""
+    from dscpp_jax.config import preset
+    from dscpp_jax.run_logging import RunLogger
+    cfg = dataclasses.asdict(preset("fast", "point_u_maze", "dsc", td3_dtype="float32"))
+    runs = tmp_path / "runs"
+    args = reproduce.build_parser().parse_args(
+        ["--runs-root", str(runs), "--out", str(tmp_path / "out"), "--seeds", "0-1",
+         "--episodes", "30", "--env-map", "u_maze=point_u_maze"])
+    args.env_map = {"u_maze": "point_u_maze"}
+    exp = reproduce.Exp("u_maze", "dsc", 30, "0-1")
+
+    def group(name, seeds, finished=True):
+        g = runs / name
+        g.mkdir(parents=True)
+        (g / "group.json").write_text(json.dumps({"seeds": seeds, "config": cfg}))
+        for s in seeds:
+            log = RunLogger(str(g / f"s{s}"))
+            for j in (1, 2, 3):
+                log.log({"iteration": j, "env_steps": 100 * j, "episodes": 10 * j})
+            log.close()
+            if finished:
+                (g / f"s{s}" / "eval.json").write_text(json.dumps({"iteration": 3}))
+        return str(g)
+
+    assert reproduce.group_dir(exp, args) == str(runs / "point_u_maze-dsc-g0-1")   # nothing yet
+    group("point_u_maze-dsc-g2-5", [2, 3, 4, 5])            # does not hold seeds 0-1
+    group("point_u_maze-dsc-g0-3-long", [0, 1, 2, 3])        # another tag
+    group("point_u_maze-dsc-dp-g0-3", [0, 1, 2, 3])          # another subgoal rule
+    big = group("point_u_maze-dsc-g0-3", [0, 1, 2, 3])
+    group("point_u_maze-dsc-g0-9", list(range(10)))          # larger still: the smaller wins
+    assert reproduce.group_dir(exp, args) == big
+    data = reproduce.Data(args, {"6": [exp]})
+    assert [os.path.basename(d) for d in data.dirs(exp)] == ["s0", "s1"]
+    assert data.finished(exp)
+    assert data.info[exp]["name"] == "point_u_maze-dsc-g0-3 (seeds 0-1 of it)"
+    args.dry_run = True
+    assert reproduce.train_one(exp, args, None) == "skipped"
+    assert "point_u_maze-dsc-g0-3: skipped (finished)" in capsys.readouterr().out
+    # a group of the asked seeds' own name comes first
+    own = group("point_u_maze-dsc-g0-1", [0, 1])
+    assert reproduce.group_dir(exp, args) == own
+    assert reproduce.Data(args, {"6": [exp]}).info[exp]["name"] == "point_u_maze-dsc-g0-1"
+    # a larger group without a checkpoint or final evaluations (stale) is not resumed for them
+    shutil.rmtree(own)
+    shutil.rmtree(big)
+    shutil.rmtree(runs / "point_u_maze-dsc-g0-9")
+    group("point_u_maze-dsc-g0-3", [0, 1, 2, 3], finished=False)
+    assert reproduce.train_one(exp, args, None) == "dry-run"
+    out = capsys.readouterr().out
+    assert "point_u_maze-dsc-g0-1: would start" in out and "--seeds 0-1" in out
