@@ -65,8 +65,8 @@ def test_presets_keep_paper_constants():
                                                       "ant_reacher")] == [2048] + [4096] * 4
     assert preset("fast", "point_u_maze").mpc_samples == 128
     # the chain's frontier: on for the skill chains of the ant mazes with dead ends, off elsewhere
-    for env, algo, rows in (("medium", "mb_dscpp", 32), ("medium", "mf_dscpp", 24),
-                            ("medium", "dsc", 24), ("large", "mb_dscpp", 24)):
+    for env, algo, rows in (("medium", "mb_dscpp", 32), ("medium", "mf_dscpp", 32),
+                            ("medium", "dsc", 32), ("large", "mb_dscpp", 24)):
         f = preset("fast", env, algo)
         assert (f.frontier_start_prob, f.frontier_parent, f.frontier_radius,
                 f.frontier_inner_radius, f.max_options) == (0.5, True, 6.0, 3.0, rows), (env, algo)
