@@ -72,6 +72,26 @@ def frontier_note(cfg: Config) -> str:
             f"the paper's rule: --set frontier_start_prob=0 --set frontier_parent=false")
 
 
+def medium_td3_note(cfg: Config) -> str:
+    """One line for a model-free run on the ant medium maze with that maze's TD3 (HER `future`
+    at 0.8 and twice the action penalty; beyond the paper, `config.MEDIUM_MODEL_FREE_TD3`),
+    saying how to train the other mazes' TD3 instead; "" otherwise."""
+    from dscpp_jax.config import MEDIUM_MODEL_FREE_TD3, MODEL_BASED_ALGOS
+    if cfg.env != "medium" or cfg.algo in MODEL_BASED_ALGOS or any(
+            getattr(cfg, k) != v for k, v in MEDIUM_MODEL_FREE_TD3.items()):
+        return ""
+    sets = ", ".join(f"{k}={v:g}" if isinstance(v, float) else f"{k}={v}"
+                     for k, v in MEDIUM_MODEL_FREE_TD3.items())
+    return (f"{cfg.env}: the model-free learners' TD3 of this maze (beyond the paper: {sets}); "
+            f"the other ant mazes': --set her_strategy=final --set her_relabel_prob=0.5 "
+            f"--set td3_action_l2=1")
+
+
+def notes_beyond_paper(cfg: Config) -> list:
+    """The lines a train call prints about what its preset adds beyond the paper."""
+    return [n for n in (frontier_note(cfg), medium_td3_note(cfg)) if n]
+
+
 DETERMINISTIC_FLAG = "--xla_gpu_deterministic_ops=true"
 
 
@@ -278,8 +298,7 @@ def train(cfg: Optional[Config] = None, run_dir: Optional[str] = None, resume: b
     if _is_ant(cfg):
         print(f"{cfg.env}: {'MuJoCo Warp' if cfg.physics == 'warp' else 'MJX (JAX)'} physics on "
               f"{jax.default_backend().upper()}", file=sys.stderr)
-    note = frontier_note(cfg)
-    if note:
+    for note in notes_beyond_paper(cfg):
         print(note, file=sys.stderr)
     try:
         os.makedirs(run_dir, exist_ok=True)
@@ -907,8 +926,7 @@ def cmd_train_group(args) -> int:
     else:
         cfg = config_from_args(args)
         group_dir = args.run_dir
-    note = frontier_note(cfg)
-    if note:
+    for note in notes_beyond_paper(cfg):
         print(note, file=sys.stderr)
     try:
         states, group_dir, summaries = group_train.train_group(

@@ -382,3 +382,21 @@ def test_train_names_the_chains_frontier_where_the_preset_turns_it_on():
     assert frontier_note(preset("fast", "medium", "td3_her")) == ""
     assert frontier_note(preset("fast", "medium", "mf_dscpp", frontier_start_prob=0.0,
                                 frontier_parent=False)) == ""
+
+
+def test_train_names_the_medium_mazes_model_free_td3():
+    """A model-free run on the ant medium maze says that its TD3 (HER future at 0.8, action
+    penalty 2) is beyond the paper and how to get the other mazes' TD3; nothing for the
+    model-based learners, the other mazes, or a user who set the TD3 back."""
+    from dscpp_jax.cli import medium_td3_note, notes_beyond_paper
+    from dscpp_jax.config import preset
+    for algo in ("mf_dscpp", "dsc", "td3_her"):
+        note = medium_td3_note(preset("fast", "medium", algo))
+        assert "her_strategy=future, her_relabel_prob=0.8, td3_action_l2=2" in note, algo
+        assert "--set her_strategy=final --set her_relabel_prob=0.5 --set td3_action_l2=1" in note
+    assert medium_td3_note(preset("fast", "medium", "mb_dscpp")) == ""
+    assert medium_td3_note(preset("fast", "u_maze", "mf_dscpp")) == ""
+    assert medium_td3_note(preset("fast", "medium", "mf_dscpp", her_strategy="final")) == ""
+    assert len(notes_beyond_paper(preset("fast", "medium", "mf_dscpp"))) == 2
+    assert len(notes_beyond_paper(preset("fast", "medium", "td3_her"))) == 1
+    assert notes_beyond_paper(preset("fast", "u_maze", "mf_dscpp")) == []
