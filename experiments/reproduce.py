@@ -215,16 +215,17 @@ def group_dir(exp: Exp, args) -> str:
 
 
 def shown_name(exp: Exp, gdir: str) -> str:
-    """A group's directory name, with the seeds taken from it where it holds more."""
+    """A group's directory name for the README (in backticks), with the seeds taken from it
+    where it holds more."""
     from dscpp_jax.seed_group import format_seeds, parse_seeds
     name = os.path.basename(os.path.normpath(gdir))
     try:
         with open(os.path.join(gdir, "group.json")) as f:
             have = sorted(int(x) for x in json.load(f)["seeds"])
     except (OSError, ValueError, KeyError, TypeError):
-        return name
+        return f"`{name}`"
     want = sorted(parse_seeds(exp.seeds))
-    return name if want == have else f"{name} (seeds {format_seeds(want)} of it)"
+    return f"`{name}`" + ("" if want == have else f" (seeds {format_seeds(want)} of it)")
 
 
 def checkpoint_steps(group_dir: str) -> list:
@@ -354,8 +355,7 @@ def mismatch_lines(data, args) -> list:
         except (OSError, ValueError, KeyError, TypeError) as e:
             bad = [f"config unreadable ({e})"]
         if bad:
-            out.append(f"- `{info.get('name', os.path.basename(os.path.normpath(info['dir'])))}`: "
-                       + "; ".join(bad))
+            out.append(f"- {info['name']}: " + "; ".join(bad))
     return out
 
 
@@ -1254,8 +1254,7 @@ def failure_lines(data: Data) -> list:
             except ValueError:   # no metrics yet, or no skill chain (flat learners)
                 continue
         if rows:
-            out.append(f"- `{info.get('name', os.path.basename(os.path.normpath(info['dir'])))}`: "
-                       f"{diagnose.format_summary(rows)}")
+            out.append(f"- {info['name']}: {diagnose.format_summary(rows)}")
     return out
 
 

@@ -638,8 +638,9 @@ def test_readme_lists_groups_made_with_other_settings(tmp_path):
         gdir = tmp_path / exp.name({})
         gdir.mkdir()
         (gdir / "group.json").write_text(json.dumps({"seeds": [0], "config": cfg}))
-        info[exp] = dict(dir=str(gdir), seeds=[])
-    info[reproduce.Exp("u_maze", "dsc", 2001, "0-4")] = dict(dir=str(tmp_path / "none"), seeds=[])
+        info[exp] = dict(dir=str(gdir), seeds=[], name=f"`{exp.name({})}`")
+    info[reproduce.Exp("u_maze", "dsc", 2001, "0-4")] = dict(dir=str(tmp_path / "none"), seeds=[],
+                                                             name="`u_maze-dsc-g0-4`")
     lines = reproduce.mismatch_lines(types.SimpleNamespace(info=info), args)
     assert lines == ["- `medium-dsc-g0-4`: her_strategy='final' (asked: 'future'); "
                      "td3_action_l2=1.0 (asked: 2.0)"]
@@ -683,14 +684,14 @@ def test_a_figure_takes_its_seeds_from_a_larger_group(tmp_path, capsys):
     data = reproduce.Data(args, {"6": [exp]})
     assert [os.path.basename(d) for d in data.dirs(exp)] == ["s0", "s1"]
     assert data.finished(exp)
-    assert data.info[exp]["name"] == "point_u_maze-dsc-g0-3 (seeds 0-1 of it)"
+    assert data.info[exp]["name"] == "`point_u_maze-dsc-g0-3` (seeds 0-1 of it)"
     args.dry_run = True
     assert reproduce.train_one(exp, args, None) == "skipped"
     assert "point_u_maze-dsc-g0-3: skipped (finished)" in capsys.readouterr().out
     # a group of the asked seeds' own name comes first
     own = group("point_u_maze-dsc-g0-1", [0, 1])
     assert reproduce.group_dir(exp, args) == own
-    assert reproduce.Data(args, {"6": [exp]}).info[exp]["name"] == "point_u_maze-dsc-g0-1"
+    assert reproduce.Data(args, {"6": [exp]}).info[exp]["name"] == "`point_u_maze-dsc-g0-1`"
     # a larger group without a checkpoint or final evaluations (stale) is not resumed for them
     shutil.rmtree(own)
     shutil.rmtree(big)
