@@ -76,15 +76,19 @@ def medium_td3_note(cfg: Config) -> str:
     """One line for a model-free run on the ant medium maze with that maze's TD3 (HER `future`
     at 0.8 and twice the action penalty; beyond the paper, `config.MEDIUM_MODEL_FREE_TD3`),
     saying how to train the other mazes' TD3 instead; "" otherwise."""
-    from dscpp_jax.config import MEDIUM_MODEL_FREE_TD3, MODEL_BASED_ALGOS
+    from dscpp_jax.config import MEDIUM_MODEL_FREE_TD3, MODEL_BASED_ALGOS, preset
     if cfg.env != "medium" or cfg.algo in MODEL_BASED_ALGOS or any(
             getattr(cfg, k) != v for k, v in MEDIUM_MODEL_FREE_TD3.items()):
         return ""
-    sets = ", ".join(f"{k}={v:g}" if isinstance(v, float) else f"{k}={v}"
-                     for k, v in MEDIUM_MODEL_FREE_TD3.items())
+
+    def fmt(v):
+        return f"{v:g}" if isinstance(v, float) else str(v)
+
+    other = preset("fast", "four_rooms", cfg.algo)    # what the other ant mazes train with
+    sets = ", ".join(f"{k}={fmt(v)}" for k, v in MEDIUM_MODEL_FREE_TD3.items())
+    back = " ".join(f"--set {k}={fmt(getattr(other, k))}" for k in MEDIUM_MODEL_FREE_TD3)
     return (f"{cfg.env}: the model-free learners' TD3 of this maze (beyond the paper: {sets}); "
-            f"the other ant mazes': --set her_strategy=final --set her_relabel_prob=0.5 "
-            f"--set td3_action_l2=1")
+            f"the other ant mazes': {back}")
 
 
 def notes_beyond_paper(cfg: Config) -> list:
