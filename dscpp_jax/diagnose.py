@@ -205,16 +205,18 @@ def format_table(rows: Sequence[dict], root: Optional[str] = None) -> str:
 def verdict_kind(verdict: str) -> str:
     """The verdict without its details: "weak links 3, 7" -> "weak link", "broke late (falls)"
     -> "broke late", "stalled link (targets option 15, ...)" -> "stalled link", "falls; weak
-    link 7" -> "falls; weak link"."""
+    link 7" -> "falls and weak link"."""
     parts = [p.strip() for p in verdict.split(" (", 1)[0].split(";")]
-    return "; ".join("weak link" if p.startswith("weak link") else p for p in parts)
+    return " and ".join("weak link" if p.startswith("weak link") else p for p in parts)
 
 
 def format_summary(rows: Sequence[dict]) -> str:
-    """One line: how many runs got each kind of verdict, most common first (ties by name)."""
+    """One line: how many runs got each kind of verdict, most common first (ties by name), the
+    count before the kind and the kinds apart by semicolons, since a kind may hold a comma
+    ("5 runs: 2 solved; 1 falls and weak link; 1 start covered, failing on the way; ...")."""
     counts = collections.Counter(verdict_kind(r["verdict"]) for r in rows)
     parts = sorted(counts.items(), key=lambda kv: (-kv[1], kv[0]))
-    return f"{len(rows)} runs: " + ", ".join(f"{k} {n}" for k, n in parts)
+    return f"{len(rows)} runs: " + "; ".join(f"{n} {k}" for k, n in parts)
 
 
 def _mean_se(values: Sequence[float]) -> Optional[tuple]:

@@ -72,13 +72,13 @@ def test_each_failure_gets_its_verdict(tmp_path):
     assert "| late | 0.00 | 0.97 | - | yes | 10 | 0 of 100 | 23 | broke late (weak link 23) |" in table
     # the summary counts kinds, details left out: "weak link 7" and "weak link 23" are one kind
     assert D.verdict_kind("stalled link (targets option 15, 1200 executions)") == "stalled link"
-    assert D.verdict_kind("falls; weak links 3, 4") == "falls; weak link"
+    assert D.verdict_kind("falls; weak links 3, 4") == "falls and weak link"
     assert D.verdict_kind("not covered (link in gestation towards option 12: 1200 executions, "
                           "2 successes)") == "not covered"
     summary = D.format_summary([D.diagnose_run(str(tmp_path / n)) for n in cases])
-    assert summary == ("11 runs: falls 2, not covered 2, solved 2, broke late 1, "
-                       "stalled link 1, start covered, failing on the way 1, table full 1, "
-                       "weak link 1")
+    assert summary == ("11 runs: 2 falls; 2 not covered; 2 solved; 1 broke late; "
+                       "1 stalled link; 1 start covered, failing on the way; 1 table full; "
+                       "1 weak link")
     # mean ± s.e. over the runs, worked by hand: (1, 0.5, 0) -> 0.50 ± sqrt(0.25 / 3);
     # in-band (0.9, none, 0.7) -> 0.80 ± 0.10 over the two runs that have it
     nan = float("nan")
@@ -120,7 +120,7 @@ def test_diagnose_takes_groups_and_says_what_is_missing(tmp_path, capsys):
     assert math.isnan(r["success"]) and D.verdict_kind(r["verdict"]) == "unfinished"
     assert "| a | - | - | - | yes |" in D.format_table([r], str(tmp_path))
     done = _run(tmp_path, "done", {"options/start_covered": 1}, {"eval/success_rate": 0.5})
-    assert D.format_summary([r, D.diagnose_run(done)]) == "2 runs: start covered, failing on the way 1, unfinished 1"
+    assert D.format_summary([r, D.diagnose_run(done)]) == "2 runs: 1 start covered, failing on the way; 1 unfinished"
     assert D.format_means([r, D.diagnose_run(done)]).startswith(
         "success from the start 0.50 ± 0.00 (1 of 2 runs)")
     # train's own end-of-run line gives no verdict for a run whose evaluation is missing

@@ -119,7 +119,7 @@ def test_reproduce_trains_draws_reports_then_skips(tmp_path, capsys, monkeypatch
     assert {l.split("`")[1] for l in why} >= {"point_u_maze-mf_dscpp-g0-1",
                                                "point_u_maze-dsc-g0-1"}, why
     for l in why:
-        counts = [int(c.rsplit(" ", 1)[1]) for c in l.split(" runs: ")[1].split(", ")]
+        counts = [int(c.split(" ", 1)[0]) for c in l.split(" runs: ")[1].split("; ")]
         assert sum(counts) == int(l.split(" runs: ")[0].rsplit(" ", 1)[1]) == 2, l
 
     # a second call finds every group finished: no training, metrics untouched
