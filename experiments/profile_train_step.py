@@ -13,6 +13,10 @@ For each B it times (median of repeated jitted calls, results blocked on):
   td3       the iteration's TD3+HER gradient steps alone (part of learn); with --td3-blocks, also
             for each listed td3_sample_block (minibatches drawn per replay sampling call)
   train_step  the jitted train_step after warm-up
+With --learn-parts, also each part of `learn` alone: the dynamics model's normaliser fit and its
+gradient steps, the classifier refits, the chain's growth and metrics, and the finiteness checks.
+With --trained N, every time is taken on the state after N real training iterations (filled
+buffers, a grown chain) instead of a fresh one.
 and prints env steps/s for each. Writes JSON with the device, versions and command.
 """
 from __future__ import annotations
@@ -41,8 +45,33 @@ def _time(fn, *args, reps=3):
     return statistics.median(ts)
 
 
+def learn_parts(cfg, state, key, reps: int) -> dict:
+    """Seconds of each part of `trainer._learn` alone, on `state` (see the module docstring)."""
+    import jax
+    import jax.numpy as jnp
+
+    from dscpp_jax import trainer as T
+    out = {}
+    if cfg.model_based:
+        out["dyn_normaliser_s"] = _time(jax.jit(lambda d, r: T._dynamics_fit_normaliser(cfg, d, r)),
+                                        state.dyn, state.model_replay, reps=reps)
+        out["dyn_updates_s"] = _time(jax.jit(lambda d, r, k: T._dynamics_updates(
+            cfg, d, r, k, cfg.dyn_updates)[0]), state.dyn, state.model_replay, key, reps=reps)
+    if cfg.hierarchical:
+        start = jnp.asarray(T.make_env(cfg).start, jnp.float32)
+        out["refit_s"] = _time(jax.jit(lambda c: T._refit(cfg, c)), state.chain, reps=reps)
+        out["grow_chain_s"] = _time(jax.jit(lambda c: T._grow_chain(cfg, c, start)), state.chain,
+                                    reps=reps)
+        out["chain_metrics_s"] = _time(jax.jit(lambda c: T._chain_metrics(cfg, c, start)),
+                                       state.chain, reps=reps)
+    out["finite_checks_s"] = _time(jax.jit(lambda t, d, c: [T._all_finite(x) for x in (t, d, c)]),
+                                   state.td3, state.dyn, state.chain.clf if cfg.hierarchical else
+                                   state.td3, reps=reps)
+    return out
+
+
 def profile(env_name: str, algo: str, B: int, overrides: dict, reps: int,
-            td3_blocks=()) -> dict:
+            td3_blocks=(), parts: bool = False, trained: int = 0) -> dict:
     import jax
     import jax.numpy as jnp
 
@@ -56,8 +85,13 @@ def profile(env_name: str, algo: str, B: int, overrides: dict, reps: int,
     state = T.init(jax.random.PRNGKey(0), cfg)
     jax.block_until_ready(state)
     t_init = time.perf_counter() - t0
+    m = {}
+    for _ in range(trained):   # real iterations: filled buffers, a grown chain
+        state, m = T.train_step(state)
+    jax.block_until_ready(state)
     post = state.replace(counters=state.counters.replace(
-        episodes=jnp.asarray(10 ** 6, jnp.int32), warmup_done=jnp.asarray(True)))
+        episodes=jnp.maximum(state.counters.episodes, cfg.warmup_episodes),
+        warmup_done=jnp.asarray(True)))
 
     @jax.jit
     def env_only(es, key):
@@ -66,7 +100,9 @@ def profile(env_name: str, algo: str, B: int, overrides: dict, reps: int,
             return jax.vmap(env.step)(es, a), None
         return jax.lax.scan(body, es, jax.random.split(key, Tn))[0]
 
-    out = {"num_envs": B, "steps_per_iter": Tn, "init_s": t_init}
+    out = {"num_envs": B, "steps_per_iter": Tn, "init_s": t_init, "trained_iterations": trained}
+    if "options/num_options" in m:
+        out["options"] = int(m["options/num_options"])
     k = jax.random.PRNGKey(1)
     out["env_s"] = _time(env_only, state.env_state, k, reps=reps)
     if cfg.model_based:
@@ -93,6 +129,8 @@ def profile(env_name: str, algo: str, B: int, overrides: dict, reps: int,
         out.setdefault("td3_s_by_sample_block", {})[str(blk)] = t
         if blk == cfg.td3_sample_block:
             out["td3_s"] = t
+    if parts:
+        out["learn_parts"] = learn_parts(cfg, post, k, reps)
     out["train_step_s"] = _time(T.train_step, post, reps=reps)
     n = B * Tn
     out["env_steps_per_s"] = {name: n / out[name] for name in
@@ -109,8 +147,14 @@ def main(argv=None) -> int:
     p.add_argument("--reps", type=int, default=3)
     p.add_argument("--td3-blocks", type=int, nargs="*", default=[],
                    help="also time the TD3 steps with these td3_sample_block values")
+    p.add_argument("--learn-parts", action="store_true",
+                   help="also time each part of learn alone (see above)")
+    p.add_argument("--trained", type=int, default=0, metavar="N",
+                   help="time on the state after N real training iterations (default 0: fresh)")
     p.add_argument("--out", default=None)
     args = p.parse_args(argv)
+    if args.trained < 0:
+        p.error("--trained must be >= 0")
 
     import jax
 
@@ -125,7 +169,8 @@ def main(argv=None) -> int:
            "python": platform.python_version(), "env": args.env, "algo": args.algo,
            "overrides": overrides, "results": []}
     for B in args.num_envs:
-        r = profile(args.env, args.algo, B, overrides, args.reps, args.td3_blocks)
+        r = profile(args.env, args.algo, B, overrides, args.reps, args.td3_blocks,
+                    parts=args.learn_parts, trained=args.trained)
         res["results"].append(r)
         print(json.dumps(r), flush=True)
     print(f"\n{'B':>6} {'env':>9} {'mpc':>9} {'roll-warm':>9} {'roll-pol':>9} {'learn':>9} "
@@ -135,6 +180,9 @@ def main(argv=None) -> int:
               f"{r['rollout_warmup_s']:9.3f} {r['rollout_policy_s']:9.3f} {r['learn_s']:9.3f} "
               f"{r['td3_s']:9.3f} {r['train_step_s']:9.3f} "
               f"{r['env_steps_per_s']['train_step_s']:9.0f}")
+        if "learn_parts" in r:
+            print(f"{'':>6} learn's parts: " + ", ".join(
+                f"{k[:-2]} {v:.3f} s" for k, v in r["learn_parts"].items()))
         if len(r["td3_s_by_sample_block"]) > 1:
             print(f"{'':>6} TD3 steps ({r['td3_updates']}) by td3_sample_block: " + ", ".join(
                 f"{b}: {t:.3f} s" for b, t in r["td3_s_by_sample_block"].items()))
