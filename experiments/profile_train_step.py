@@ -64,9 +64,9 @@ def learn_parts(cfg, state, key, reps: int) -> dict:
                                     reps=reps)
         out["chain_metrics_s"] = _time(jax.jit(lambda c: T._chain_metrics(cfg, c, start)),
                                        state.chain, reps=reps)
-    out["finite_checks_s"] = _time(jax.jit(lambda t, d, c: [T._all_finite(x) for x in (t, d, c)]),
-                                   state.td3, state.dyn, state.chain.clf if cfg.hierarchical else
-                                   state.td3, reps=reps)
+    checked = [state.td3, state.dyn] + ([state.chain.clf] if cfg.hierarchical else [])
+    out["finite_checks_s"] = _time(jax.jit(lambda ts: [T._all_finite(x) for x in ts]), checked,
+                                   reps=reps)
     return out
 
 

@@ -202,16 +202,19 @@ def group_dir(exp: Exp, args) -> str:
         return path
     best = None
     for d in names:
-        if not pattern.match(d):
-            continue
-        try:
-            with open(os.path.join(args.runs_root, d, "group.json")) as f:
-                seeds = {int(x) for x in json.load(f)["seeds"]}
-        except (OSError, ValueError, KeyError, TypeError):
-            continue
-        if want <= seeds and (best is None or len(seeds) < best[0]):
+        seeds = _group_seeds(os.path.join(args.runs_root, d)) if pattern.match(d) else None
+        if seeds is not None and want <= set(seeds) and (best is None or len(seeds) < best[0]):
             best = (len(seeds), d)
     return os.path.join(args.runs_root, best[1]) if best else path
+
+
+def _group_seeds(gdir: str) -> Optional[list]:
+    """The sorted seeds a group directory's group.json names; None where it cannot be read."""
+    try:
+        with open(os.path.join(gdir, "group.json")) as f:
+            return sorted(int(x) for x in json.load(f)["seeds"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
 
 
 def shown_name(exp: Exp, gdir: str) -> str:
@@ -219,13 +222,10 @@ def shown_name(exp: Exp, gdir: str) -> str:
     where it holds more."""
     from dscpp_jax.seed_group import format_seeds, parse_seeds
     name = os.path.basename(os.path.normpath(gdir))
-    try:
-        with open(os.path.join(gdir, "group.json")) as f:
-            have = sorted(int(x) for x in json.load(f)["seeds"])
-    except (OSError, ValueError, KeyError, TypeError):
-        return f"`{name}`"
+    have = _group_seeds(gdir)
     want = sorted(parse_seeds(exp.seeds))
-    return f"`{name}`" + ("" if want == have else f" (seeds {format_seeds(want)} of it)")
+    return f"`{name}`" + ("" if have is None or want == have
+                          else f" (seeds {format_seeds(want)} of it)")
 
 
 def checkpoint_steps(group_dir: str) -> list:
@@ -309,7 +309,7 @@ def _frontier_note(data, args) -> str:
     of this call: the chain's frontier for some skill chains (dscpp_jax.config.FRONTIER_PRESET)
     and, on the medium maze, the option rows, MB-DSC++'s TD3 ratio and the model-free learners'
     TD3 (MEDIUM_MODEL_FREE_TD3); else ""."""
-    from dscpp_jax.config import FRONTIER_PRESET, preset
+    from dscpp_jax.config import FRONTIER_PRESET, MEDIUM_MODEL_FREE_TD3, preset
     envs = {e.run_env(args.env_map) for e in data.info}
     mazes = sorted({e.env for e in data.info
                     if preset(args.preset, e.run_env(args.env_map), e.algo).frontier_on})
@@ -328,8 +328,7 @@ def _frontier_note(data, args) -> str:
         if ratio != preset(args.preset, "u_maze", "mb_dscpp").td3_updates_per_step:
             extra.append(f"MB-DSC++ {ratio:g} TD3 step{'' if ratio == 1 else 's'} per transition")
         mf, mf_u = (preset(args.preset, m, "mf_dscpp") for m in ("medium", "u_maze"))
-        if (mf.her_strategy, mf.her_relabel_prob, mf.td3_action_l2) != (
-                mf_u.her_strategy, mf_u.her_relabel_prob, mf_u.td3_action_l2):
+        if any(getattr(mf, k) != getattr(mf_u, k) for k in MEDIUM_MODEL_FREE_TD3):
             extra.append(f"every model-free learner HER's `{mf.her_strategy}` strategy with "
                          f"{mf.her_relabel_prob:g} of the sampled transitions relabelled and an "
                          f"action penalty of {mf.td3_action_l2:g} (MF-DSC++, DSC, dual and "
