@@ -13,11 +13,18 @@ For each B it times (median of repeated jitted calls, results blocked on):
   td3       the iteration's TD3+HER gradient steps alone (part of learn); with --td3-blocks, also
             for each listed td3_sample_block (minibatches drawn per replay sampling call)
   train_step  the jitted train_step after warm-up
-With --learn-parts, also each part of `learn` alone: the dynamics model's normaliser fit and its
-gradient steps, the classifier refits, the chain's growth and metrics, and the finiteness checks.
+  learn_after_rollout  learn on the state a rollout leaves (its option executions mark rows
+            for refitting), as in training
+With --learn-parts, also each part of `learn` alone, on that state: the dynamics model's
+normaliser fit and its gradient steps, the classifier refits, the chain's growth and metrics,
+and the finiteness checks.
 With --trained N, every time is taken on the state after N real training iterations (filled
-buffers, a grown chain) instead of a fresh one.
-and prints env steps/s for each. Writes JSON with the device, versions and command.
+buffers, a grown chain) instead of a fresh one. With --chained N, also N iterations one after
+another, each on the state the last returned and with its metrics fetched, as `train`'s loop
+runs them. Also recorded: `train_step`'s trace + lower and its XLA compile (a cache load where
+JAX's persistent cache holds it). The XLA flags are `train`'s (fusion autotuner off, and
+deterministic kernels where `train` turns them on) unless --xla-flags default.
+Prints env steps/s for each. Writes JSON with the device, versions and command.
 """
 from __future__ import annotations
 
@@ -71,7 +78,7 @@ def learn_parts(cfg, state, key, reps: int) -> dict:
 
 
 def profile(env_name: str, algo: str, B: int, overrides: dict, reps: int,
-            td3_blocks=(), parts: bool = False, trained: int = 0) -> dict:
+            td3_blocks=(), parts: bool = False, trained: int = 0, chained: int = 0) -> dict:
     import jax
     import jax.numpy as jnp
 
@@ -85,6 +92,11 @@ def profile(env_name: str, algo: str, B: int, overrides: dict, reps: int,
     state = T.init(jax.random.PRNGKey(0), cfg)
     jax.block_until_ready(state)
     t_init = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    lowered = T.train_step.lower(state)   # trace + lower, then XLA's compile (or a cache load)
+    t1 = time.perf_counter()
+    lowered.compile()
+    t_lower, t_compile = t1 - t0, time.perf_counter() - t1
     m = {}
     for _ in range(trained):   # real iterations: filled buffers, a grown chain
         state, m = T.train_step(state)
@@ -100,7 +112,8 @@ def profile(env_name: str, algo: str, B: int, overrides: dict, reps: int,
             return jax.vmap(env.step)(es, a), None
         return jax.lax.scan(body, es, jax.random.split(key, Tn))[0]
 
-    out = {"num_envs": B, "steps_per_iter": Tn, "init_s": t_init, "trained_iterations": trained}
+    out = {"num_envs": B, "steps_per_iter": Tn, "init_s": t_init, "trained_iterations": trained,
+           "train_step_lower_s": t_lower, "train_step_compile_s": t_compile}
     if "options/num_options" in m:
         out["options"] = int(m["options/num_options"])
     k = jax.random.PRNGKey(1)
@@ -129,9 +142,22 @@ def profile(env_name: str, algo: str, B: int, overrides: dict, reps: int,
         out.setdefault("td3_s_by_sample_block", {})[str(blk)] = t
         if blk == cfg.td3_sample_block:
             out["td3_s"] = t
+    # learn as training meets it: right after a rollout, whose option executions left rows dirty
+    rolled = roll(post, k)[0]
+    out["dirty_rows_after_rollout"] = int(jnp.sum(rolled.chain.dirty)) if cfg.hierarchical else 0
+    out["learn_after_rollout_s"] = _time(learn, rolled, k, reps=reps)
     if parts:
-        out["learn_parts"] = learn_parts(cfg, post, k, reps)
+        out["learn_parts"] = learn_parts(cfg, rolled, k, reps)
     out["train_step_s"] = _time(T.train_step, post, reps=reps)
+    if chained:   # as `train`'s loop runs it: each call on the state the last one returned
+        s, ts = state, []
+        for _ in range(chained):
+            t0 = time.perf_counter()
+            s, m = T.train_step(s)
+            jax.device_get(m)
+            ts.append(time.perf_counter() - t0)
+        out["chained_train_step_s"] = statistics.median(ts)
+        out["chained_train_step_each_s"] = [round(t, 4) for t in ts]
     n = B * Tn
     out["env_steps_per_s"] = {name: n / out[name] for name in
                               ("env_s", "rollout_warmup_s", "rollout_policy_s", "train_step_s")}
@@ -151,10 +177,22 @@ def main(argv=None) -> int:
                    help="also time each part of learn alone (see above)")
     p.add_argument("--trained", type=int, default=0, metavar="N",
                    help="time on the state after N real training iterations (default 0: fresh)")
+    p.add_argument("--chained", type=int, default=0, metavar="N",
+                   help="also time N iterations one after another, each on the state the last "
+                        "returned (as `train` runs them; default 0: none)")
+    p.add_argument("--xla-flags", choices=("train", "default"), default="train",
+                   help="train (default): the XLA flags `train` sets (fusion autotuner off, "
+                        "deterministic kernels as `train` chooses); default: XLA's own")
     p.add_argument("--out", default=None)
     args = p.parse_args(argv)
-    if args.trained < 0:
-        p.error("--trained must be >= 0")
+    if args.trained < 0 or args.chained < 0:
+        p.error("--trained and --chained must be >= 0")
+    if args.xla_flags == "train":   # before JAX touches a device
+        from dscpp_jax import cli
+        ns = argparse.Namespace(env=args.env, algo=args.algo, physics="auto", deterministic=None)
+        deterministic = cli.use_xla_flags(cli.deterministic_choice(ns))
+    else:
+        deterministic = "xla_gpu_deterministic_ops=true" in os.environ.get("XLA_FLAGS", "")
 
     import jax
 
@@ -167,10 +205,11 @@ def main(argv=None) -> int:
     res = {"command": " ".join([os.path.basename(sys.executable)] + sys.argv),
            "device": getattr(d, "device_kind", d.platform), "jax": jax.__version__,
            "python": platform.python_version(), "env": args.env, "algo": args.algo,
-           "overrides": overrides, "results": []}
+           "overrides": overrides, "xla_flags": os.environ.get("XLA_FLAGS", ""),
+           "deterministic_ops": deterministic, "results": []}
     for B in args.num_envs:
         r = profile(args.env, args.algo, B, overrides, args.reps, args.td3_blocks,
-                    parts=args.learn_parts, trained=args.trained)
+                    parts=args.learn_parts, trained=args.trained, chained=args.chained)
         res["results"].append(r)
         print(json.dumps(r), flush=True)
     print(f"\n{'B':>6} {'env':>9} {'mpc':>9} {'roll-warm':>9} {'roll-pol':>9} {'learn':>9} "
@@ -181,7 +220,8 @@ def main(argv=None) -> int:
               f"{r['td3_s']:9.3f} {r['train_step_s']:9.3f} "
               f"{r['env_steps_per_s']['train_step_s']:9.0f}")
         if "learn_parts" in r:
-            print(f"{'':>6} learn's parts: " + ", ".join(
+            print(f"{'':>6} learn after a rollout {r['learn_after_rollout_s']:.3f} s "
+                  f"({r['dirty_rows_after_rollout']} rows to refit); its parts: " + ", ".join(
                 f"{k[:-2]} {v:.3f} s" for k, v in r["learn_parts"].items()))
         if len(r["td3_s_by_sample_block"]) > 1:
             print(f"{'':>6} TD3 steps ({r['td3_updates']}) by td3_sample_block: " + ", ".join(
