@@ -992,9 +992,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="at the end, write curves/trajectory/classifier plots to RUN_DIR/plots")
     det_help = ("deterministic XLA GPU kernels, so one seed gives the same run twice on a GPU with "
                 "--physics jax (1.1-1.3x the time per iteration on the ant). Default: on, except "
-                "for model-free learners with MuJoCo Warp physics (the GPU default), which does "
-                "not repeat either way; model-based learners keep it, since it also stops XLA "
-                "from autotuning their MPC at every compile")
+                "with MuJoCo Warp physics (the GPU default), which does not repeat either way")
     t.add_argument("--deterministic", action=argparse.BooleanOptionalAction, default=None,
                    help=det_help)
     cache_help = ("directory of compiled programs reused across runs, resumes and evaluations "
@@ -1139,28 +1137,14 @@ def runs_on_warp(args) -> bool:
     return warp_available()
 
 
-def _model_based(args) -> bool:
-    """Whether the command's algorithm plans with a dynamics model (MB-DSC++, MB flat, MB flat +
-    value): `--algo`, else the saved config of `--resume` / `--run`."""
-    from dscpp_jax.config import MODEL_BASED_ALGOS
-    algo = getattr(args, "algo", None)
-    saved = _saved_config_of(args)
-    if saved is not None:
-        algo = saved.get("algo", algo)
-    return algo in MODEL_BASED_ALGOS
-
-
 def deterministic_default(args) -> bool:
-    """`--deterministic`'s default: deterministic XLA kernels, except for model-free learners
-    where the ant physics is MuJoCo Warp. Warp's own kernels do not repeat on a GPU either way,
-    so there the switch buys no repeatability; for the model-free learners it would cost time
-    per iteration, while for the model-based ones it keeps the compile short: the switch also
-    turns XLA's autotuning off, and without it the MPC's programs are autotuned at every cold
-    compile. With the fusion autotuner off (`use_fusion_autotuner_off`) that costs one H200
-    about 41 s against 20 s for one MB-DSC++ seed and 37 s against 21 s for a 16-seed group
-    (368 s with that autotuner on), for about 3-10 % less time per iteration; docs/training.md,
-    "Reproducibility")."""
-    return not runs_on_warp(args) or _model_based(args)
+    """`--deterministic`'s default: deterministic XLA kernels, except where the ant physics is
+    MuJoCo Warp. Warp's own kernels do not repeat on a GPU either way, so there the switch buys
+    no repeatability, and it costs time: an MB-DSC++ U-maze iteration on one H200 took 1.205 s
+    with it against 1.073 s without (TD3's matrix multiplies), for about the same compile (23.8 s
+    against 26.7 s; experiments/results/time_to_result/README.md, "Deterministic kernels off for
+    the model-based learners too")."""
+    return not runs_on_warp(args)
 
 
 def deterministic_choice(args) -> bool:

@@ -108,14 +108,11 @@ def table(records: list) -> str:
 
 
 def as_train(args) -> argparse.Namespace:
-    """The `train` command whose `--deterministic` default the benchmark takes: that of its first
-    model-based algorithm (else its first algorithm), set once, before JAX starts, for every
-    algorithm and group size of the run."""
-    from dscpp_jax.config import MODEL_BASED_ALGOS
+    """The `train` command whose `--deterministic` default the benchmark takes (it follows the
+    physics): set once, before JAX starts, for every algorithm and group size of the run."""
     algos = [a.strip() for a in args.algos.split(",") if a.strip()]
-    algo = next((a for a in algos if a in MODEL_BASED_ALGOS), algos[0] if algos else None)
-    return argparse.Namespace(env=args.env, set=args.set, physics=None, algo=algo,
-                              deterministic=args.deterministic)
+    return argparse.Namespace(env=args.env, set=args.set, physics=None,
+                              algo=algos[0] if algos else None, deterministic=args.deterministic)
 
 
 def main(argv=None) -> int:
@@ -137,8 +134,7 @@ def main(argv=None) -> int:
                    help="override a Config field (repeatable)")
     p.add_argument("--deterministic", action=argparse.BooleanOptionalAction, default=None,
                    help="--xla_gpu_deterministic_ops on or off (default: as `train` chooses: "
-                        "off where the ant physics is MuJoCo Warp, except with a model-based "
-                        "algorithm among --algos)")
+                        "off where the ant physics is MuJoCo Warp)")
     p.add_argument("--out", default=None,
                    help="JSON path (default experiments/results/bench_seeds_<device>.json)")
     args = p.parse_args(argv)

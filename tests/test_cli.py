@@ -293,12 +293,11 @@ def test_xla_accepts_the_fusion_autotuner_flag():
     assert r.returncode == 0 and r.stdout.strip() == "2.0", r.stderr[-2000:]
 
 
-def test_deterministic_default_follows_the_physics_and_the_algorithm(tmp_path, monkeypatch):
-    """Deterministic XLA kernels by default, except for model-free learners where the ant runs on
-    MuJoCo Warp (which does not repeat either way): the physics from --physics, --set physics=,
-    or the saved config of --resume and --run ("auto" means Warp where warp-lang is installed),
-    the algorithm from --algo or the saved config. Point-mass twins stay deterministic, and so do
-    model-based learners (the switch keeps XLA from autotuning their MPC at every compile)."""
+def test_deterministic_default_follows_the_physics(tmp_path, monkeypatch):
+    """Deterministic XLA kernels by default, except where the ant runs on MuJoCo Warp (which does
+    not repeat either way), for every learner: the physics from --physics, --set physics=, or the
+    saved config of --resume and --run ("auto" means Warp where warp-lang is installed).
+    Point-mass twins stay deterministic."""
     import envs.ant_maze
     from dscpp_jax.cli import build_parser, deterministic_default
     p = build_parser()
@@ -306,41 +305,35 @@ def test_deterministic_default_follows_the_physics_and_the_algorithm(tmp_path, m
     def default(*argv):
         return deterministic_default(p.parse_args(list(argv)))
 
-    mf = ("--algo", "mf_dscpp")
-    assert default("train", "--env", "point_u_maze", "--physics", "warp", *mf)
-    assert default("train", "--env", "u_maze", "--physics", "jax", *mf)
-    assert not default("train", "--env", "u_maze", "--physics", "warp", *mf)
-    assert not default("train", "--env", "u_maze", "--set", "physics=warp", "--algo", "td3_her")
-    assert not default("train", "--env", "u_maze", "--physics", "warp", "--algo", "dsc",
-                       "--seeds", "0-15")
-    assert default("train", "--env", "u_maze", "--physics", "jax", "--set", "physics=warp", *mf)
-    for algo in ("mb_dscpp", "mb_flat", "mb_flat_value"):    # model-based: on, Warp or not
-        assert default("train", "--env", "u_maze", "--physics", "warp", "--algo", algo)
-        assert default("train", "--env", "u_maze", "--physics", "warp", "--algo", algo,
-                       "--seeds", "0-15")
-    assert default("train", "--env", "u_maze", "--physics", "warp")   # --algo's default: mb_dscpp
+    for algo in ("mf_dscpp", "td3_her", "dsc", "mb_dscpp", "mb_flat", "mb_flat_value"):
+        a = ("--algo", algo)
+        assert default("train", "--env", "point_u_maze", "--physics", "warp", *a)
+        assert default("train", "--env", "u_maze", "--physics", "jax", *a)
+        assert not default("train", "--env", "u_maze", "--physics", "warp", *a)
+        assert not default("train", "--env", "u_maze", "--set", "physics=warp", *a)
+        assert not default("train", "--env", "u_maze", "--physics", "warp", *a, "--seeds", "0-15")
+        assert default("train", "--env", "u_maze", "--physics", "jax", "--set", "physics=warp", *a)
+    assert not default("train", "--env", "u_maze", "--physics", "warp")   # --algo's default
     for installed in (True, False):
         monkeypatch.setattr(envs.ant_maze, "warp_available", lambda: installed)
-        assert default("train", "--env", "u_maze", *mf) is not installed          # physics auto
-        assert default("train", "--env", "four_rooms", "--physics", "auto", *mf) is not installed
+        assert default("train", "--env", "u_maze") is not installed           # physics auto
+        assert default("train", "--env", "four_rooms", "--physics", "auto") is not installed
     for physics, algo, det in (("warp", "mf_dscpp", False), ("jax", "mf_dscpp", True),
-                               ("warp", "mb_dscpp", True)):
+                               ("warp", "mb_dscpp", False), ("jax", "mb_dscpp", True)):
         run = tmp_path / f"{physics}_{algo}"
         run.mkdir()
         (run / "config.json").write_text(json.dumps({"config": {
             "env": "u_maze", "physics": physics, "algo": algo}}))
         assert default("eval", "--run", str(run)) is det
         assert default("video", "--run", str(run)) is det
-        assert default("train", "--resume", str(run)) is det     # the saved algo, not --algo's
+        assert default("train", "--resume", str(run)) is det     # the saved physics
+        assert default("train", "--resume", str(run), "--physics", "jax")
     group = tmp_path / "group"
     group.mkdir()
     (group / "group.json").write_text(json.dumps({"seeds": [0, 1], "config": {
-        "env": "medium", "physics": "warp", "algo": "mf_dscpp"}}))
+        "env": "medium", "physics": "warp", "algo": "mb_dscpp"}}))
     assert not default("train", "--resume", str(group))
     assert default("train", "--resume", str(group), "--physics", "jax")
-    (group / "group.json").write_text(json.dumps({"seeds": [0, 1], "config": {
-        "env": "medium", "physics": "warp", "algo": "mb_dscpp"}}))
-    assert default("train", "--resume", str(group))
 
 
 def test_compile_cache_stores_programs_and_a_second_process_loads_them(tmp_path):

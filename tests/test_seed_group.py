@@ -272,8 +272,8 @@ def test_bench_seeds_smoke(ref, tmp_path):
 
 
 def test_bench_seeds_deterministic_default_is_train_s(monkeypatch):
-    """The benchmark sets the switch once for all its algorithms, as `train` would for the first
-    model-based one among them (else the first)."""
+    """The benchmark sets the switch once for all its algorithms, as `train` would: off where the
+    ant physics is MuJoCo Warp, on otherwise, unless asked."""
     import argparse
     import envs.ant_maze
     from dscpp_jax.cli import deterministic_choice
@@ -288,9 +288,10 @@ def test_bench_seeds_deterministic_default_is_train_s(monkeypatch):
         p.add_argument("--deterministic", action=argparse.BooleanOptionalAction, default=None)
         return deterministic_choice(bench_seeds.as_train(p.parse_args(list(argv))))
 
-    assert det()                                        # MB-DSC++ among them, on Warp: on
-    assert not det("--algos", "mf_dscpp")               # model-free on Warp: off
-    assert not det("--no-deterministic")
+    assert not det()                                    # on Warp: off, model-based or not
+    assert not det("--algos", "mf_dscpp")
+    assert det("--deterministic")
+    assert det("--set", "physics=jax")                  # MJX physics: on
     assert det("--env", "point_u_maze", "--algos", "mf_dscpp")   # no Warp: on
 
 
