@@ -24,6 +24,8 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
+from dscpp_jax.replay import valid_positions
+
 __all__ = [
     "DynamicsConfig",
     "DynamicsMLP",
@@ -278,19 +280,18 @@ def dynamics_train(cfg: DynamicsConfig, state: DynamicsState, buffer, key, num_s
 
     buffer: (obs, act, next_obs[, mask]) arrays with any leading axes, or a replay ring whose ``data``
     holds ``obs``/``action``/``next_obs`` (dict or fields) with its ``valid`` mask. Minibatches are drawn uniformly with replacement
-    from the valid rows (fixed shapes: inverse-CDF over the mask). Normalisation statistics are NOT
+    from the valid rows (fixed shapes: the valid rows' positions are listed once, then each draw is
+    a lookup). Normalisation statistics are NOT
     refreshed here: call :func:`dynamics_fit_normaliser` first. Returns (state, metrics) where metrics
     holds the per-step mean loss (num_steps,).
     """
     obs, act, nxt, mask = _buffer_arrays(buffer)
     E, B = cfg.ensemble_size, cfg.batch_size
-    cdf = jnp.cumsum(mask.astype(jnp.int32))
-    total = cdf[-1]
+    positions, total = valid_positions(mask)   # the search of every draw, done once
 
     def body(st, k):
         u = jax.random.randint(k, (E, B), 0, jnp.maximum(total, 1))
-        idx = jnp.searchsorted(cdf, u, side="right")
-        idx = jnp.minimum(idx, obs.shape[0] - 1)
+        idx = positions[u]
         b = (obs[idx], act[idx], nxt[idx])
         new, m = dynamics_update(cfg, st, b, k)
         new = jax.tree.map(lambda a, c: jnp.where(total > 0, a, c), new, st)

@@ -19,7 +19,7 @@ Reward and continuation are recomputed for the (possibly new) goal: reward 0 wit
 segment ends bootstrap).
 
 Many draws from one buffer (a learning phase's gradient steps): :func:`her_index` computes, once,
-the running count of valid entries and every entry's distance to its segment's latest step, and
+the positions of the valid entries and every entry's distance to its segment's latest step, and
 :func:`her_sample` takes the resulting :class:`HERBuffer` in place of the replay. The draws are
 the same as from the plain replay; each then costs a few gathers instead of a search of the
 buffer's valid mask and of ``max_segment`` rows per sample.
@@ -33,7 +33,7 @@ import jax
 import jax.numpy as jnp
 
 from dscpp_jax.replay import (Replay, Transition, replay_gather, replay_sample_index,
-                              replay_valid_counts)
+                              replay_valid_positions)
 from envs.goals import goal_reached
 
 STRATEGIES = ("final", "future", "none")
@@ -57,7 +57,8 @@ class HERBuffer:
     """A replay with what every draw from it needs, computed once by :func:`her_index`."""
 
     replay: Replay
-    counts: jax.Array        # (capacity,) int32: running count of valid entries, row-major
+    positions: jax.Array     # (capacity,) int32: the k-th valid entry's flat index, row-major
+    size: jax.Array          # () int32: the number of valid entries
     last_offset: jax.Array   # (rows, num_envs) int32: segment_last_offset of every entry
     max_segment: int = flax.struct.field(pytree_node=False, default=0)
 
@@ -86,11 +87,12 @@ def segment_last_offsets(buf: Replay, max_segment: int) -> jax.Array:
 
 
 def her_index(buf: Replay, max_segment: int) -> HERBuffer:
-    """``buf`` with its valid entries' running count and every entry's segment end precomputed,
+    """``buf`` with its valid entries' positions and every entry's segment end precomputed,
     for many :func:`her_sample` calls on the same buffer (pass the result in place of ``buf``)."""
     if int(max_segment) < 1:
         raise ValueError(f"max_segment must be >= 1 (the option timeout), got {max_segment}")
-    return HERBuffer(replay=buf, counts=replay_valid_counts(buf),
+    positions, size = replay_valid_positions(buf)
+    return HERBuffer(replay=buf, positions=positions, size=size,
                      last_offset=segment_last_offsets(buf, max_segment),
                      max_segment=int(max_segment))
 
@@ -181,8 +183,8 @@ def her_sample(
     replay = buf.replay if isinstance(buf, HERBuffer) else buf
     _check(replay, strategy, max_segment)
     k_idx, k_fut, k_rel = jax.random.split(key, 3)
-    rows, envs = replay_sample_index(replay, k_idx, n,
-                                     buf.counts if isinstance(buf, HERBuffer) else None)
+    rows, envs = replay_sample_index(replay, k_idx, n, (buf.positions, buf.size)
+                                     if isinstance(buf, HERBuffer) else None)
     u_future = jax.random.uniform(k_fut, (n,))
     u_relabel = jax.random.uniform(k_rel, (n,))
     return her_relabel(

@@ -192,26 +192,44 @@ def replay_size(buf: Replay) -> jax.Array:
     return jnp.sum(buf.valid, dtype=jnp.int32)
 
 
-def replay_valid_counts(buf: Replay) -> jax.Array:
-    """Running count of the valid entries in row-major order, ``(capacity,)`` int32: what
-    :func:`replay_sample_index` searches (compute it once for many draws from one buffer)."""
-    return jnp.cumsum(buf.valid.reshape(-1), dtype=jnp.int32)
+def valid_positions(mask: jax.Array) -> Tuple[jax.Array, jax.Array]:
+    """``(positions, size)`` of a 1-D bool ``mask``: ``positions[k]`` is the index of its ``k``-th
+    True entry (``(n,)`` int32; the slots from ``size`` on hold ``n - 1``), ``size`` their number.
+
+    Drawing ``k`` uniformly in ``[0, size)`` and looking up ``positions[k]`` samples the True
+    entries uniformly with one gather per draw. This is the inverse-CDF draw
+    (``searchsorted(cumsum(mask), k, side="right")``) with the search done once for all draws:
+    the same indices, without a sequential binary search per draw (which on a GPU is a loop of
+    about log2(n) tiny steps inside every sampling step)."""
+    mask = jnp.asarray(mask, bool)
+    n = mask.shape[0]
+    counts = jnp.cumsum(mask, dtype=jnp.int32)
+    slot = jnp.arange(n, dtype=jnp.int32)
+    # each True entry goes to its rank; the others to distinct out-of-range slots (dropped)
+    target = jnp.where(mask, counts - 1, n + slot)
+    positions = jnp.full((n,), n - 1, jnp.int32).at[target].set(slot, mode="drop",
+                                                                unique_indices=True)
+    return positions, counts[-1]
+
+
+def replay_valid_positions(buf: Replay) -> Tuple[jax.Array, jax.Array]:
+    """:func:`valid_positions` of the valid entries in row-major (row, env) order: what
+    :func:`replay_sample_index` looks up (compute it once for many draws from one buffer)."""
+    return valid_positions(buf.valid.reshape(-1))
 
 
 def replay_sample_index(buf: Replay, key: jax.Array, n: int,
-                        counts: Optional[jax.Array] = None) -> Tuple[jax.Array, jax.Array]:
+                        positions: Optional[Tuple[jax.Array, jax.Array]] = None
+                        ) -> Tuple[jax.Array, jax.Array]:
     """``n`` (row, env) indices drawn uniformly, with replacement, from the valid entries.
 
-    Exact: the k-th valid entry (k uniform in [0, size)) is found by a search in the running count
-    of valid entries (``counts``: :func:`replay_valid_counts` of ``buf``, computed here if not
-    given). On an empty buffer every index is (0, 0); check :func:`replay_size` first.
+    Exact: the k-th valid entry (k uniform in [0, size)) is looked up in ``positions``
+    (:func:`replay_valid_positions` of ``buf``, computed here if not given). On an empty buffer
+    every index is the last slot; check :func:`replay_size` first.
     """
-    flat = buf.valid.reshape(-1)
-    counts = replay_valid_counts(buf) if counts is None else counts
-    total = counts[-1]
+    table, total = replay_valid_positions(buf) if positions is None else positions
     u = jax.random.randint(key, (n,), 0, jnp.maximum(total, 1), dtype=jnp.int32)
-    idx = jnp.searchsorted(counts, u, side="right").astype(jnp.int32)
-    idx = jnp.minimum(idx, flat.shape[0] - 1)
+    idx = table[u]
     return idx // buf.num_envs, idx % buf.num_envs
 
 

@@ -6,7 +6,7 @@ import pytest
 
 from dscpp_jax.her import her_index, her_relabel, her_sample, segment_last_offset
 from dscpp_jax.replay import (TrajStep, replay_add, replay_add_many, replay_flatten, replay_init,
-                              replay_sample, replay_sample_index, replay_size)
+                              replay_sample, replay_sample_index, replay_size, valid_positions)
 
 OBS, ACT, GOAL = 4, 2, 2
 
@@ -244,3 +244,33 @@ def test_her_index_equals_the_windowed_search(steps, max_segment):
             np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
     with pytest.raises(ValueError, match="indexed with max_segment"):
         her_sample(jax.random.key(5), index, 8, "final", max_segment=max_segment + 1)
+
+
+@pytest.mark.parametrize("n,p", [(1, 1.0), (7, 0.0), (50, 0.3), (1000, 0.9), (1000, 1.0)])
+def test_valid_positions_is_the_inverse_cdf_draw(n, p):
+    """valid_positions(mask)[k] is the k-th True entry (NumPy's flatnonzero), the slots past the
+    last one hold n - 1, and a draw through it equals the inverse-CDF search it replaces
+    (searchsorted of the running count, clipped to the last slot), empty masks included."""
+    rng = np.random.default_rng(n + int(10 * p))
+    mask = rng.random(n) < p
+    positions, size = jax.jit(valid_positions)(jnp.asarray(mask))
+    want = np.flatnonzero(mask)
+    assert int(size) == len(want)
+    np.testing.assert_array_equal(np.asarray(positions)[:len(want)], want)
+    assert (np.asarray(positions)[len(want):] == n - 1).all()
+    k = rng.integers(0, max(len(want), 1), 4096)
+    search = np.minimum(np.searchsorted(np.cumsum(mask), k, side="right"), n - 1)
+    np.testing.assert_array_equal(np.asarray(positions)[k], search)
+
+
+def test_replay_sample_index_draws_uniformly_over_valid_entries():
+    """Every valid (row, env) entry is drawn, none invalid, each about equally often."""
+    rng = np.random.default_rng(8)
+    buf = _fill(_history(rng, 30, 4), 64, 4)
+    valid = np.asarray(buf.valid)
+    rows, envs = jax.jit(replay_sample_index, static_argnums=2)(buf, jax.random.key(9), 200_000)
+    hits = np.zeros(valid.shape)
+    np.add.at(hits, (np.asarray(rows), np.asarray(envs)), 1)
+    assert (hits[~valid] == 0).all() and (hits[valid] > 0).all()
+    expect = 200_000 / valid.sum()
+    assert np.abs(hits[valid] / expect - 1).max() < 0.15
