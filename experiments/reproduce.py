@@ -1407,7 +1407,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--dry-run", action="store_true", help="print the train commands only")
     p.add_argument("--deterministic", action=argparse.BooleanOptionalAction, default=None,
                    help="deterministic GPU kernels in train and in the evaluations here (default: "
-                        "as train: on, except for model-free learners on MuJoCo Warp physics)")
+                        "as train: on, except on MuJoCo Warp physics)")
     p.add_argument("--compile-cache", default=None, metavar="DIR")
     p.add_argument("--export-lean", default=None, metavar="DIR",
                    help="at the end, copy what results keep of every run under --runs-root to "

@@ -16,7 +16,7 @@
 # a tagged job's run and results are named <env>_<algo>_<tag>; BUDGET_<TAG> overrides BUDGET for it.
 # Stopped by a signal (e.g. `timeout`), it still packs results.tgz from what the jobs have written.
 # DETERMINISTIC=1 passes --deterministic, 0 --no-deterministic; unset, train and eval choose
-# (deterministic XLA kernels except for model-free learners on MuJoCo Warp physics).
+# (deterministic XLA kernels except on MuJoCo Warp physics, which does not repeat either way).
 # Compiled programs are kept in $DSCPP_JAX_COMPILE_CACHE (default runs/xla_cache).
 set -uo pipefail
 ENV=${ENV:-u_maze}
