@@ -110,9 +110,8 @@ def table(records: list) -> str:
 def as_train(args) -> argparse.Namespace:
     """The `train` command whose `--deterministic` default the benchmark takes (it follows the
     physics): set once, before JAX starts, for every algorithm and group size of the run."""
-    algos = [a.strip() for a in args.algos.split(",") if a.strip()]
     return argparse.Namespace(env=args.env, set=args.set, physics=None,
-                              algo=algos[0] if algos else None, deterministic=args.deterministic)
+                              deterministic=args.deterministic)
 
 
 def main(argv=None) -> int:

@@ -22,7 +22,7 @@ With --trained N, every time is taken on the state after N real training iterati
 buffers, a grown chain) instead of a fresh one. With --chained N, also N iterations one after
 another, each on the state the last returned and with its metrics fetched, as `train`'s loop
 runs them. Also recorded: `train_step`'s trace + lower and its XLA compile (a cache load where
-JAX's persistent cache holds it). The XLA flags are `train`'s (fusion autotuner off, and
+JAX's persistent cache, on as in `train`, holds it). The XLA flags are `train`'s (fusion autotuner off, and
 deterministic kernels where `train` turns them on) unless --xla-flags default.
 Prints env steps/s for each. Writes JSON with the device, versions and command.
 """
@@ -183,6 +183,10 @@ def main(argv=None) -> int:
     p.add_argument("--xla-flags", choices=("train", "default"), default="train",
                    help="train (default): the XLA flags `train` sets (fusion autotuner off, "
                         "deterministic kernels as `train` chooses); default: XLA's own")
+    p.add_argument("--compile-cache", default=None, metavar="DIR|off",
+                   help="JAX's persistent compilation cache, as `train` takes it (default: "
+                        "$DSCPP_JAX_COMPILE_CACHE, else JAX's setting, else ~/.cache/dscpp_jax/xla); "
+                        "the step compiled ahead for its timing is then loaded, not compiled again")
     p.add_argument("--out", default=None)
     args = p.parse_args(argv)
     if args.trained < 0 or args.chained < 0:
@@ -196,7 +200,9 @@ def main(argv=None) -> int:
 
     import jax
 
+    from dscpp_jax.cli import use_compile_cache
     from dscpp_jax.config import parse_value
+    cache = use_compile_cache(args.compile_cache)
     overrides = {"inband_eval_envs": 0}   # training alone unless --set asks for in-band envs
     for s in args.set:
         name, v = s.split("=", 1)
@@ -206,7 +212,7 @@ def main(argv=None) -> int:
            "device": getattr(d, "device_kind", d.platform), "jax": jax.__version__,
            "python": platform.python_version(), "env": args.env, "algo": args.algo,
            "overrides": overrides, "xla_flags": os.environ.get("XLA_FLAGS", ""),
-           "deterministic_ops": deterministic, "results": []}
+           "deterministic_ops": deterministic, "compile_cache": cache, "results": []}
     for B in args.num_envs:
         r = profile(args.env, args.algo, B, overrides, args.reps, args.td3_blocks,
                     parts=args.learn_parts, trained=args.trained, chained=args.chained)

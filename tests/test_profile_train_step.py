@@ -11,7 +11,7 @@ def test_profile_times_learns_parts_on_a_trained_state(tmp_path):
     prof = load("profile_train_step")
     out = str(tmp_path / "p.json")
     assert prof.main(["--env", "point_u_maze", "--num-envs", "4", "--reps", "1", "--learn-parts",
-                      "--trained", "1", "--chained", "2", "--set", "steps_per_iter=10", "--out", out]) == 0
+                      "--trained", "1", "--chained", "2", "--compile-cache", str(tmp_path / "xla"), "--set", "steps_per_iter=10", "--out", out]) == 0
     res = json.load(open(out))
     (r,) = res["results"]
     assert r["trained_iterations"] == 1 and r["options"] >= 1
@@ -20,6 +20,7 @@ def test_profile_times_learns_parts_on_a_trained_state(tmp_path):
     assert all(v > 0 for v in r["learn_parts"].values())
     assert r["learn_after_rollout_s"] > 0 and isinstance(r["dirty_rows_after_rollout"], int)
     assert res["overrides"]["steps_per_iter"] == 10
+    assert res["compile_cache"] == str(tmp_path / "xla")
     assert len(r["chained_train_step_each_s"]) == 2 and r["chained_train_step_s"] > 0
     assert r["train_step_compile_s"] > 0 and r["train_step_lower_s"] > 0
     with pytest.raises(SystemExit):
