@@ -53,10 +53,13 @@ reproduce: $(STAMP)
 
 # Time to result (ant mazes, in-band evaluation): the seeds of SEEDS (0-4 unless given) one after
 # another, each stopped where its in-band success first reaches THRESHOLD or after LIMIT seconds;
-# run directories and a summary table (summary_ENV-ALGO.md) under runs/time_to_result.
+# run directories, a summary table (summary_ENV-ALGO.md) and its figure (time_to_threshold_ENV-ALGO.png)
+# under runs/time_to_result.
 time-to-result: $(STAMP)
 	$(BIN)/python experiments/time_to_threshold.py --dest runs/time_to_result --name $(ENV)-$(ALGO) \
 	  --seeds $(or $(SEEDS),0-4) --threshold $(THRESHOLD) --limit $(LIMIT) -- --env $(ENV) --algo $(ALGO) $(ARGS)
+	$(BIN)/python experiments/plot_time_to_threshold.py runs/time_to_result/summary_$(ENV)-$(ALGO).json \
+	  --out runs/time_to_result/time_to_threshold_$(ENV)-$(ALGO).png
 
 bench-env: $(STAMP)
 	$(BIN)/python experiments/bench_env.py $(ARGS)

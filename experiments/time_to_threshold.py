@@ -18,7 +18,10 @@ the run ended or hit the limit first. The run is stopped where the threshold is 
 final evaluation: this measures time to a result, not the result at the end of training.
 Every call also writes DEST/summary_NAME.{json,md}: per run the first iteration's end (loop
 seconds), the median seconds per iteration in and after the warm-up, and the hit; rewritten after
-each run, so an interrupted series keeps the runs it finished.
+each run, so an interrupted series keeps the runs it finished. The hit's `command_s` is when this
+script saw the row (it reads metrics.csv once a second); `row_s` is when the run wrote it, by the
+run's own clock (its start-up record's loop start plus the row's wall-clock).
+`experiments/plot_time_to_threshold.py` draws one or more summaries.
 """
 from __future__ import annotations
 
@@ -94,22 +97,42 @@ def startup_of(run_dir: str):
     return records[0] if records else None
 
 
+def loop_start_s(startup):
+    """Seconds from the process's start to the start of its training loop (where metrics.csv's
+    `wall_clock` counts from), from its start-up record; None where that is not known."""
+    try:
+        return float(startup["command_to_first_iteration_s"]) - float(
+            startup["phases_s"]["first iteration"])
+    except (KeyError, TypeError, ValueError):
+        return None
+
+
+def row_s(out):
+    """When the hit's metrics row was written, in seconds from the process's start by the run's own
+    clock (its loop start plus the row's `wall_clock`). The timer polls metrics.csv once a second,
+    so `command_s` can be up to about a second later. None where either is not known."""
+    start, hit = loop_start_s(out.get("startup")), out.get("hit")
+    return None if start is None or not hit else round(start + hit["loop_s"], 1)
+
+
 def summary_table(rows, goal=None) -> str:
     """A Markdown table of time_to_threshold results (one dict per run: name, hit, times)."""
     def f(x, fmt):
         return "-" if x is None else format(x, fmt)
     out = ["| run | command to the first iteration's end | first iteration ends (loop) | "
            "s / iteration (warm-up / after) | threshold: iteration, episodes | "
-           "command start to threshold |",
-           "|---|---|---|---|---|---|"]
+           "command start to threshold | the row, by the run's clock |",
+           "|---|---|---|---|---|---|---|"]
     for r in rows:
         h, t = r.get("hit"), r.get("times") or {}
         st = (r.get("startup") or {}).get("command_to_first_iteration_s")
         out.append(f"| {r['name']} | {f(st, '.1f')} s | {f(t.get('first_s'), '.1f')} s | "
                    f"{f(t.get('warmup_s'), '.2f')} / "
                    f"{f(t.get('after_s'), '.2f')} | "
-                   + (f"{h['iteration']}, {h['episodes']:,} | {h['command_s']:.0f} s |" if h else
-                      f"not reached (stopped by {r.get('stopped_by')} at {r.get('stopped_s')} s) | - |"))
+                   + (f"{h['iteration']}, {h['episodes']:,} | {h['command_s']:.0f} s | "
+                      f"{f(h.get('row_s'), '.1f')} s |" if h else
+                      f"not reached (stopped by {r.get('stopped_by')} at {r.get('stopped_s')} s) "
+                      f"| - | - |"))
     secs = sorted(r["hit"]["command_s"] for r in rows if r.get("hit"))
     line = f"\n\n{len(secs)} of {len(rows)} runs reached the threshold"
     if secs:
@@ -192,6 +215,8 @@ def main(argv=None):
         out = time_one(a.dest, name, targs, a.threshold, a.limit)
         out["times"] = iteration_times(os.path.join(a.dest, name, "metrics.csv"))
         out["startup"] = startup_of(os.path.join(a.dest, name))
+        if out.get("hit"):
+            out["hit"]["row_s"] = row_s(out)
         print(json.dumps(out), flush=True)
         results.append(out)
         with open(os.path.join(a.dest, f"summary_{a.name}.json"), "w") as f:

@@ -130,3 +130,48 @@ def test_seeds_refuse_a_seed_in_the_train_arguments(tmp_path):
         ttt.main(["--dest", str(tmp_path), "--name", "u", "--seeds", "0-1", "--", "--seed", "3"])
     with pytest.raises(SystemExit):
         ttt.main(["--dest", str(tmp_path), "--name", "u", "--seeds", "3-1", "--", "--env", "u_maze"])
+
+
+def test_row_s_reads_the_hit_on_the_runs_own_clock():
+    """The timer polls once a second; row_s puts the hit where the run wrote it: its loop's start
+    (start-up record: command to the first iteration's end, less that iteration) plus the row's
+    wall-clock."""
+    st = {"command_to_first_iteration_s": 29.45, "phases_s": {"first iteration": 0.986}}
+    row = dict(name="u_s17", startup=st, times={},
+               hit=dict(iteration=98, episodes=1223, loop_s=90.9839, command_s=120.1))
+    assert ttt.loop_start_s(st) == 29.45 - 0.986
+    assert ttt.row_s(row) == 119.4
+    row["hit"]["row_s"] = ttt.row_s(row)
+    assert "| 98, 1,223 | 120 s | 119.4 s |" in ttt.summary_table([row])
+    assert ttt.row_s(dict(row, startup=None)) is None
+    assert ttt.row_s(dict(row, startup={"command_to_first_iteration_s": 3.0})) is None
+    assert ttt.row_s(dict(row, hit=None)) is None
+
+
+def test_plot_draws_the_series_from_their_summaries(tmp_path):
+    """plot_time_to_threshold.py: curves on the command's clock (full windows only), the hit on the
+    run's clock, runs that compiled told apart from warm ones, and a PNG written."""
+    sys.path.insert(0, os.path.join(ROOT, "experiments"))
+    import plot_time_to_threshold as ptt
+    sys.path.pop(0)
+    dest = tmp_path / "d"
+    dest.mkdir()
+    runs = []
+    for name, compile_s, hit in (("u_s0", 60.0, True), ("u_s1", 9.0, True), ("u_s2", 9.5, False)):
+        (dest / name).mkdir()
+        _metrics(str(dest / name / "metrics.csv"),
+                 [(1, 0, 1.0, 0, 0.0), (2, 10, 2.0, 4, 0.5), (3, 20, 3.0, 4, 0.9 if hit else 0.5)])
+        st = {"command_to_first_iteration_s": compile_s + 11.0,
+              "phases_s": {"first iteration": 1.0, ptt.COMPILE_PHASE: compile_s}}
+        runs.append(dict(name=name, threshold=0.9, window=4, startup=st,
+                         hit=dict(iteration=3, episodes=20, loop_s=3.0, command_s=compile_s + 14.0)
+                         if hit else None))
+    (dest / "summary_u.json").write_text(json.dumps(dict(threshold=0.9, goal_s=120, runs=runs)))
+    out = str(tmp_path / "fig" / "t.png")
+    got = ptt.main([str(dest / "summary_u.json"), "--goal", "120", "--goal", "180", "--out", out])
+    assert os.path.getsize(out) > 0
+    by = {r["name"]: r for r in got}
+    assert by["u_s0"]["compiled"] and not by["u_s1"]["compiled"]
+    assert by["u_s0"]["curve"] == ([70.0 + 2.0, 70.0 + 3.0], [0.5, 0.9])   # loop start 70 s
+    assert by["u_s1"]["hit_s"] == 22.0 and by["u_s2"]["hit_s"] is None
+    assert ptt.short_names(["u_maze_s3", "u_maze_cold_s3"]) == ["s3", "cold_s3"]
