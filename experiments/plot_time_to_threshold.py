@@ -23,8 +23,9 @@ COMPILE_PHASE = "XLA compile ahead (init, train_step)"
 
 def load_runs(summaries, compiled_s: float = 30.0):
     """One dict per run of the given summary files: name, compiled (bool), threshold, hit seconds
-    (the run's own clock where known, else when the timer saw it; None if not reached), and the
-    curve (seconds since the command's start, in-band success; full windows only)."""
+    (the run's own clock where known, else when the timer saw it; None if not reached), when the
+    timer stopped it, and the curve (seconds since the command's start, in-band success; full
+    windows only). A run not reached is drawn as a hatched outline up to its stop."""
     sys.path.insert(0, ROOT)
     from dscpp_jax.run_logging import read_metrics
     sys.path.insert(0, os.path.join(ROOT, "experiments"))
@@ -57,7 +58,7 @@ def load_runs(summaries, compiled_s: float = 30.0):
                         ys.append(s)
             runs.append(dict(name=r["name"], threshold=r.get("threshold", summary.get("threshold")),
                              compiled=compile_s is not None and compile_s > compiled_s,
-                             hit_s=hit_s, curve=(xs, ys)))
+                             hit_s=hit_s, stopped_s=r.get("stopped_s"), curve=(xs, ys)))
     return runs
 
 
@@ -98,11 +99,14 @@ def plot(runs, goals, out: str, title: str = ""):
     a.legend(loc="upper left", fontsize=8)
     order = sorted(runs, key=lambda r: (r["hit_s"] is None, r["hit_s"] or 0.0))
     for i, r in enumerate(order):
-        y = r["hit_s"] if r["hit_s"] is not None else 0.0
-        b.bar(i, y, color=colors[r["compiled"]], hatch=None if r["hit_s"] is not None else "//")
+        if r["hit_s"] is not None:
+            b.bar(i, r["hit_s"], color=colors[r["compiled"]])
+        else:   # not reached: a hatched outline up to where the run stopped
+            b.bar(i, r["stopped_s"] or 0.0, color="none", edgecolor=colors[r["compiled"]],
+                  hatch="//")
     b.set_xticks(range(len(order)))
     b.set_xticklabels(short_names([r["name"] for r in order]), rotation=90, fontsize=7)
-    b.set_ylabel("seconds to the threshold (run's clock)")
+    b.set_ylabel("seconds to the threshold (run's clock);\nhatched: not reached, stopped there")
     missed = [r["name"] for r in runs if r["hit_s"] is None]
     b.set_title(f"{len(runs) - len(missed)} of {len(runs)} reached it"
                 + (f"; not: {', '.join(missed)}" if missed else ""), fontsize=9)

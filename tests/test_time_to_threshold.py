@@ -163,7 +163,7 @@ def test_plot_draws_the_series_from_their_summaries(tmp_path):
                  [(1, 0, 1.0, 0, 0.0), (2, 10, 2.0, 4, 0.5), (3, 20, 3.0, 4, 0.9 if hit else 0.5)])
         st = {"command_to_first_iteration_s": compile_s + 11.0,
               "phases_s": {"first iteration": 1.0, ptt.COMPILE_PHASE: compile_s}}
-        runs.append(dict(name=name, threshold=0.9, window=4, startup=st,
+        runs.append(dict(name=name, threshold=0.9, window=4, startup=st, stopped_s=30.0,
                          hit=dict(iteration=3, episodes=20, loop_s=3.0, command_s=compile_s + 14.0)
                          if hit else None))
     (dest / "summary_u.json").write_text(json.dumps(dict(threshold=0.9, goal_s=120, runs=runs)))
@@ -174,4 +174,5 @@ def test_plot_draws_the_series_from_their_summaries(tmp_path):
     assert by["u_s0"]["compiled"] and not by["u_s1"]["compiled"]
     assert by["u_s0"]["curve"] == ([70.0 + 2.0, 70.0 + 3.0], [0.5, 0.9])   # loop start 70 s
     assert by["u_s1"]["hit_s"] == 22.0 and by["u_s2"]["hit_s"] is None
+    assert by["u_s2"]["stopped_s"] == 30.0   # drawn as an outline up to where it stopped
     assert ptt.short_names(["u_maze_s3", "u_maze_cold_s3"]) == ["s3", "cold_s3"]
