@@ -26,9 +26,10 @@ def load_runs(summaries, compiled_s: float = 30.0):
     (the run's own clock where known, else when the timer saw it; None if not reached), when the
     timer stopped it, and the curve (seconds since the command's start, in-band success; full
     windows only). A run not reached is drawn as a hatched outline up to its stop."""
-    sys.path.insert(0, ROOT)
+    for path in (ROOT, os.path.join(ROOT, "experiments")):
+        if path not in sys.path:
+            sys.path.insert(0, path)
     from dscpp_jax.run_logging import read_metrics
-    sys.path.insert(0, os.path.join(ROOT, "experiments"))
     import time_to_threshold as ttt
     runs = []
     for path in summaries:
