@@ -14,7 +14,8 @@ evaluate in-band (`inband_eval_envs > 0`, as the ant presets do); a window count
 as many finished episodes as the run's in-band window. Writes DEST/NAME/ (the run directory),
 DEST/NAME.log (its output) and DEST/time_NAME.json: the threshold, the first iteration at or above
 it (iteration, episodes, the loop's wall-clock, seconds from the command's start), or null when
-the run ended or hit the limit first. The run is stopped where the threshold is seen, so it has no
+the run ended or hit the limit first (then `end`: the iteration and episodes it got to, and its
+final evaluation's success where the run finished). The run is stopped where the threshold is seen, so it has no
 final evaluation: this measures time to a result, not the result at the end of training.
 Every call also writes DEST/summary_NAME.{json,md}: per run the first iteration's end (loop
 seconds), the median seconds per iteration in and after the warm-up, and the hit; rewritten after
@@ -115,6 +116,41 @@ def row_s(out):
     return None if start is None or not hit else round(start + hit["loop_s"], 1)
 
 
+def run_end(run_dir: str):
+    """Where a run that stopped short of the threshold got to: its last metrics row's iteration and
+    episodes, and its final evaluation's success from the start (eval.json) where it wrote one.
+    None where it wrote no metrics row."""
+    try:
+        with open(os.path.join(run_dir, "metrics.csv")) as f:
+            rows = list(csv.DictReader(f))
+        last = rows[-1]
+        out = dict(iteration=int(float(last["iteration"])), episodes=int(float(last["episodes"])),
+                   final_success=None)
+    except (OSError, IndexError, KeyError, ValueError):
+        return None
+    try:
+        with open(os.path.join(run_dir, "eval.json")) as f:
+            out["final_success"] = float(json.load(f)["eval/success_rate"])
+    except (OSError, KeyError, TypeError, ValueError):
+        pass
+    return out
+
+
+def not_reached(r) -> str:
+    """The summary's words for a run without a hit: what stopped it, and where it had got to."""
+    by, at, end = r.get("stopped_by"), r.get("stopped_s"), r.get("end")
+    where = ""
+    if end:
+        where = f" at iteration {end['iteration']}, {end['episodes']:,} episodes"
+        if end.get("final_success") is not None:
+            where += f", final success {end['final_success']:.2f}"
+    if by == "limit":
+        return f"not reached within the limit ({at} s){where}"
+    if by == "exit 0":
+        return f"not reached: the run ended{where} ({at} s)"
+    return f"not reached (stopped by {by} at {at} s){where}"
+
+
 def summary_table(rows, goal=None) -> str:
     """A Markdown table of time_to_threshold results (one dict per run: name, hit, times)."""
     def f(x, fmt):
@@ -131,8 +167,7 @@ def summary_table(rows, goal=None) -> str:
                    f"{f(t.get('after_s'), '.2f')} | "
                    + (f"{h['iteration']}, {h['episodes']:,} | {h['command_s']:.0f} s | "
                       f"{f(h.get('row_s'), '.1f')} s |" if h else
-                      f"not reached (stopped by {r.get('stopped_by')} at {r.get('stopped_s')} s) "
-                      f"| - | - |"))
+                      f"{not_reached(r)} | - | - |"))
     secs = sorted(r["hit"]["command_s"] for r in rows if r.get("hit"))
     line = f"\n\n{len(secs)} of {len(rows)} runs reached the threshold"
     if secs:
@@ -172,7 +207,8 @@ def time_one(dest: str, name: str, train_args, threshold: float, limit: float) -
         hit = first_hit(os.path.join(run_dir, "metrics.csv"), threshold, window)
     out = dict(name=name, command=" ".join(["python", "-m", "dscpp_jax.cli", "train"] + train_args),
                threshold=threshold, window=window, hit=hit, stopped_s=round(time.time() - t0, 1),
-               stopped_by="threshold" if hit else ("limit" if ended is None else f"exit {ended}"))
+               stopped_by="threshold" if hit else ("limit" if ended is None else f"exit {ended}"),
+               end=None if hit else run_end(run_dir))
     with open(os.path.join(dest, f"time_{name}.json"), "w") as f:
         json.dump(out, f, indent=1)
     return out

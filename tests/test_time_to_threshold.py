@@ -101,7 +101,7 @@ def test_seeds_run_one_after_another_and_the_summary_counts_the_goal(tmp_path, m
     assert [r["name"] for r in res] == ["u_s0", "u_s1", "u_s2"]
     md = open(os.path.join(dest, "summary_u.md")).read()
     assert "| u_s1 | - s | - s | - / - | 61, 901 | 120 s |" in md
-    assert "not reached (stopped by limit at 200.0 s)" in md
+    assert "not reached within the limit (200.0 s) |" in md
     assert "2 of 3 runs reached the threshold; command start to threshold 100-120 s, median 110 s; " \
            "within 120 s: 2 of 3" in md
     summary = json.load(open(os.path.join(dest, "summary_u.json")))
@@ -130,6 +130,27 @@ def test_seeds_refuse_a_seed_in_the_train_arguments(tmp_path):
         ttt.main(["--dest", str(tmp_path), "--name", "u", "--seeds", "0-1", "--", "--seed", "3"])
     with pytest.raises(SystemExit):
         ttt.main(["--dest", str(tmp_path), "--name", "u", "--seeds", "3-1", "--", "--env", "u_maze"])
+
+
+def test_a_run_that_ends_short_of_the_threshold_says_where_it_got_to(tmp_path):
+    run = tmp_path / "f_s0"
+    run.mkdir()
+    assert ttt.run_end(str(run)) is None
+    _metrics(run / "metrics.csv", [(1, 10, 1.0, 32, 0.0), (201, 2010, 290.0, 32, 0.5)])
+    assert ttt.run_end(str(run)) == dict(iteration=201, episodes=2010, final_success=None)
+    (run / "eval.json").write_text(json.dumps({"eval/success_rate": 0.93}))
+    end = ttt.run_end(str(run))
+    assert end == dict(iteration=201, episodes=2010, final_success=0.93)
+    rows = [dict(name="f_s0", hit=None, stopped_by="exit 0", stopped_s=315.4, end=end),
+            dict(name="f_s1", hit=None, stopped_by="exit 1", stopped_s=12.0, end=None),
+            dict(name="f_s2", hit=None, stopped_by="limit", stopped_s=420.0,
+                 end=dict(iteration=300, episodes=1800, final_success=None))]
+    md = ttt.summary_table(rows, goal=360)
+    assert ("not reached: the run ended at iteration 201, 2,010 episodes, final success 0.93 "
+            "(315.4 s) | - | - |") in md
+    assert "not reached (stopped by exit 1 at 12.0 s) | - | - |" in md
+    assert "not reached within the limit (420.0 s) at iteration 300, 1,800 episodes | - | - |" in md
+    assert "0 of 3 runs reached the threshold; within 360 s: 0 of 3" in md
 
 
 def test_row_s_reads_the_hit_on_the_runs_own_clock():
