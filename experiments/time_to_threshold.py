@@ -120,11 +120,11 @@ def run_end(run_dir: str):
     """Where a run that stopped short of the threshold got to: its last metrics row's iteration and
     episodes, and its final evaluation's success from the start (eval.json) where it wrote one.
     None where it wrote no metrics row."""
+    _dscpp_jax()
+    from dscpp_jax.run_logging import read_metrics
     try:
-        with open(os.path.join(run_dir, "metrics.csv")) as f:
-            rows = list(csv.DictReader(f))
-        last = rows[-1]
-        out = dict(iteration=int(float(last["iteration"])), episodes=int(float(last["episodes"])),
+        m = read_metrics(os.path.join(run_dir, "metrics.csv"))
+        out = dict(iteration=int(m["iteration"][-1]), episodes=int(m["episodes"][-1]),
                    final_success=None)
     except (OSError, IndexError, KeyError, ValueError):
         return None
