@@ -16,7 +16,9 @@ already writes (``docs/training.md``; the medium maze in ``experiments/results/p
   link is in gestation, the detail gives its target and its executions and successes so far: a
   chain still growing when the episodes ran out shows few executions, a link that hardly ever
   reaches its target thousands with a success or two (the medium maze's MF-DSC++ seed 5 of
-  ``runs_her_future/``: 4,029 executions, 1 success);
+  ``runs_her_future/``: 4,029 executions, 1 success); runs that log
+  ``options/gestation_fail_distance`` also say how far from its target its failed executions
+  started, on average (and its successful ones);
 - ``unfinished``: the run has no ``eval.json`` yet (stopped or still training before its final
   evaluation); its row shows what ``metrics.csv`` holds (episodes, in-band success, coverage) and
   the means leave it out of the final success;
@@ -54,6 +56,19 @@ DIP = 0.5                 # a periodic evaluation below this, after one reached 
 
 COLUMNS = ("run", "success", "in-band at the end", "dips once solved", "start covered",
            "options", "falls", "weak links", "verdict")
+
+
+def _start_distances(metrics: dict) -> str:
+    """"; failures started D from its target (successes S)" for the link in gestation, from
+    ``options/gestation_fail_distance`` and ``options/gestation_success_distance`` (the mean
+    straight-line distance of its stored failed and successful starts to its target's nearest
+    positive state); "" where the run does not log them (older runs) or they are undefined."""
+    fail = _num(metrics, "options/gestation_fail_distance")
+    succ = _num(metrics, "options/gestation_success_distance")
+    if not math.isfinite(fail):
+        return ""
+    out = f"; failures started {fail:.1f} from its target"
+    return out + (f" (successes {succ:.1f})" if math.isfinite(succ) else "")
 
 
 def link_stalled(metrics: dict) -> bool:
@@ -154,10 +169,12 @@ def diagnose_run(run_dir: str) -> dict:
     elif full:
         verdict = "table full"
     elif stalled:
-        verdict = f"stalled link (targets option {g_parent}, {int(g_exec)} executions)"
+        verdict = (f"stalled link (targets option {g_parent}, {int(g_exec)} executions"
+                   f"{_start_distances(last)})")
     elif g_exec > 0:
         verdict = (f"not covered (link in gestation towards option {g_parent}: {int(g_exec)} "
-                   f"executions, {int(g_succ)} success{'' if int(g_succ) == 1 else 'es'})")
+                   f"executions, {int(g_succ)} success{'' if int(g_succ) == 1 else 'es'}"
+                   f"{_start_distances(last)})")
     else:
         verdict = "not covered"
     if (success < SOLVED and math.isfinite(inband) and inband >= SOLVED

@@ -569,9 +569,40 @@ def chain_probability(chain: Chain) -> jax.Array:
 UNBOUNDED_PROBE_XY = (1e6, 1e6)
 
 
+def gestation_start_distances(chain: Chain):
+    """Where the option in gestation has been tried from: the mean distance from the starts of
+    its stored failed executions (the negatives, the last ``max_neg``) and of its successful
+    ones (the positives' first states) to the nearest positive state of the option it targets
+    (to the task goal when it is the goal option). Straight-line distances, walls ignored.
+    Returns ``(failed, succeeded)``, float32 scalars, NaN where there is none (or nothing is in
+    gestation)."""
+    gest = chain.status == GESTATION
+    g = jnp.argmax(gest)
+    p = chain.parent[g]
+    pc = jnp.clip(p, 0)
+    K, P, L = chain.pos_mask.shape
+    target = chain.pos_xy[pc].reshape(P * L, 2)
+    tmask = chain.pos_mask[pc].reshape(P * L) & (p >= 0)
+    # the goal option's target is the task goal (one point)
+    target = jnp.concatenate([target, chain.goal_xy[None, :]], axis=0)
+    tmask = jnp.concatenate([tmask, (p < 0)[None]], axis=0)
+
+    def mean_nearest(xy, mask):
+        d2 = jnp.sum((xy[:, None, :] - target[None, :, :]) ** 2, axis=-1)
+        d = jnp.sqrt(jnp.min(jnp.where(tmask[None, :], d2, jnp.inf), axis=1))
+        ok = mask & jnp.any(tmask) & jnp.any(gest)
+        n = jnp.sum(ok)
+        return jnp.where(n > 0, jnp.sum(jnp.where(ok, d, 0.0)) / jnp.maximum(n, 1), jnp.nan)
+
+    failed = mean_nearest(chain.neg_xy[g], chain.neg_mask[g])
+    succeeded = mean_nearest(chain.pos_xy[g, :, 0], chain.pos_mask[g, :, 0])
+    return failed.astype(jnp.float32), succeeded.astype(jnp.float32)
+
+
 def chain_metrics(chain: Chain, start_xy=None) -> dict:
     """Scalars for logging under ``options/...`` (reduced on the device)."""
     gest = chain.status == GESTATION
+    fail_d, success_d = gestation_start_distances(chain)
     m = {
         "num_options": chain.num_options,
         "num_mature": jnp.sum(chain.status == MATURE),
@@ -586,6 +617,10 @@ def chain_metrics(chain: Chain, start_xy=None) -> dict:
         "gestation_successes": jnp.sum(jnp.where(gest, chain.successes, 0)),
         # the row it targets (-1 while none)
         "gestation_parent": jnp.max(jnp.where(gest, chain.parent, -1)),
+        # where it has been tried from: mean distance of its stored failed / successful starts
+        # to its target's nearest positive state (NaN where none; `gestation_start_distances`)
+        "gestation_fail_distance": fail_d,
+        "gestation_success_distance": success_d,
         # mature options whose initiation set has no bound: the two-class SVC's value far from
         # every example is its intercept, and when an option's failures start among its
         # successes the fit can put that above zero, so the region holds the whole plane but

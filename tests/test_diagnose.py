@@ -27,6 +27,29 @@ def _run(tmp_path, name, last, ev, episodes=100):
     return str(d)
 
 
+def test_a_link_in_gestation_says_where_it_was_tried_from(tmp_path):
+    """Runs that log the link's start distances get them in the verdict; blank cells (nothing
+    in gestation, or no failure stored yet) leave the verdict as before."""
+    slow = {"options/gestation_executions": 900, "options/gestation_successes": 3,
+            "options/gestation_parent": 7}
+    r = D.diagnose_run(_run(tmp_path, "slow", {**slow, "options/gestation_fail_distance": 6.25,
+                                               "options/gestation_success_distance": 2.04},
+                            {"eval/success_rate": 0.0}))
+    assert r["verdict"] == ("not covered (link in gestation towards option 7: 900 executions, "
+                            "3 successes; failures started 6.2 from its target (successes 2.0))")
+    stalled = {"options/gestation_executions": 1500, "options/gestation_parent": 4,
+               "options/gestation_fail_distance": 9.0, "options/gestation_success_distance": ""}
+    r = D.diagnose_run(_run(tmp_path, "stalled", stalled, {"eval/success_rate": 0.0}))
+    assert r["verdict"] == ("stalled link (targets option 4, 1500 executions; failures started "
+                            "9.0 from its target)")
+    assert D.verdict_kind(r["verdict"]) == "stalled link"
+    r = D.diagnose_run(_run(tmp_path, "blank", {**slow, "options/gestation_fail_distance": "",
+                                                "options/gestation_success_distance": ""},
+                            {"eval/success_rate": 0.0}))
+    assert r["verdict"] == ("not covered (link in gestation towards option 7: 900 executions, "
+                            "3 successes)")
+
+
 def test_each_failure_gets_its_verdict(tmp_path):
     cases = {
         "solved": ({"options/start_covered": 1}, {"eval/success_rate": 0.9}, "solved"),

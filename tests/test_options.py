@@ -309,6 +309,42 @@ def test_metrics_follow_the_option_in_gestation(grown_chain):
     assert int(done["gestation_parent"]) == -1
 
 
+def _nearest_mean_np(starts, target):
+    """Plain NumPy oracle: mean over starts of the distance to the nearest target point."""
+    if len(starts) == 0 or len(target) == 0:
+        return float("nan")
+    return float(np.mean([min(np.hypot(*(s - t)) for t in target) for s in starts]))
+
+
+def test_gestation_start_distances_against_numpy(grown_chain):
+    """The option in gestation: mean distance of its stored failed and successful starts to its
+    target's nearest positive state (the task goal for the goal option); NaN where none."""
+    s = grown_chain
+    dist = jax.jit(O.gestation_start_distances)
+    # link 2 in gestation (targets the goal option), with two failures from near the start
+    ch = _events(s["link2_gestating"], 2, REGIONS[2], 0, n_fail=2, seed=7)
+    got_fail, got_succ = (float(v) for v in dist(ch))
+    pos_xy, pos_mask = np.asarray(ch.pos_xy), np.asarray(ch.pos_mask)
+    target = pos_xy[1][pos_mask[1]]                                    # the goal option's states
+    fails = np.asarray(ch.neg_xy)[2][np.asarray(ch.neg_mask)[2]]
+    succ = pos_xy[2, :, 0][pos_mask[2, :, 0]]
+    assert len(fails) == 2 and len(succ) == CFG.gestation - 1 and len(target) > 0
+    np.testing.assert_allclose(got_fail, _nearest_mean_np(fails, target), rtol=1e-5)
+    np.testing.assert_allclose(got_succ, _nearest_mean_np(succ, target), rtol=1e-5)
+    assert got_fail > got_succ          # failures started near the start, successes near (0, 4)
+    # the goal option in gestation: distances to the task goal; no failures yet -> NaN
+    goal_fail, goal_succ = (float(v) for v in dist(s["goal_gestating"]))
+    g0 = s["goal_gestating"]
+    succ0 = np.asarray(g0.pos_xy)[1, :, 0][np.asarray(g0.pos_mask)[1, :, 0]]
+    assert np.isnan(goal_fail)
+    np.testing.assert_allclose(goal_succ, _nearest_mean_np(succ0, GOAL_XY[None]), rtol=1e-5)
+    # nothing in gestation: NaN, and chain_metrics carries both
+    m = jax.jit(O.chain_metrics)(s["covered"], START_XY)
+    assert np.isnan(float(m["gestation_fail_distance"])) and np.isnan(float(m["gestation_success_distance"]))
+    m = jax.jit(O.chain_metrics)(ch, START_XY)
+    np.testing.assert_allclose(float(m["gestation_fail_distance"]), got_fail, rtol=1e-6)
+
+
 def test_unbounded_regions_counts_mature_options_whose_region_has_no_bound(grown_chain):
     """An optimistic SVC whose intercept is above zero holds every point far from its examples
     (a fit that happens: successes spread out, failures clustered among them, as scikit-learn
