@@ -35,6 +35,14 @@ With periodic evaluations in ``metrics.csv`` the reading also counts how many of
 had reached ``SOLVED``, fell below ``DIP`` (column "dips once solved"): a chain that dips is one
 whose final evaluation is partly luck.
 
+Column "coverage lost": from the first iteration at which some option's region held the start
+(``options/start_covered``), how many times it then stopped holding it, with the links the chain
+made from that first iteration on ("3 (+7 links)"). The chain grows whenever the start is not
+covered, so each loss can add a link at the start; on ant four rooms with the chain's frontier
+this came and went a median of 3 times per run, against 0-0.5 without it, and a chain that had
+reached 0.63 in-band fell to 0.03 after 7 more losses and 3 more links
+(``experiments/results/time_to_result/README.md``, third four-rooms round).
+
 Only the lean files are read (no checkpoint), so it works on results copied off a GPU host.
 ``python -m dscpp_jax.cli diagnose RUN_OR_GROUP_DIR ...`` prints one row per seed.
 """
@@ -55,7 +63,7 @@ FALLS_SHARE = 0.5         # falls: at least this share of the failed evaluation 
 DIP = 0.5                 # a periodic evaluation below this, after one reached SOLVED, is a dip
 
 COLUMNS = ("run", "success", "in-band at the end", "dips once solved", "start covered",
-           "options", "falls", "weak links", "verdict")
+           "coverage lost", "options", "falls", "weak links", "verdict")
 
 
 def _start_distances(metrics: dict) -> str:
@@ -106,6 +114,25 @@ def dips(path: str) -> Optional[tuple]:
         return (0, 0)
     after = vals[first:]
     return (sum(v < DIP for v in after), len(after))
+
+
+def coverage_lost(path: str) -> Optional[tuple]:
+    """(losses, links) of a ``metrics.csv``: from the first row whose ``options/start_covered``
+    is set, how many later rows clear it after a row that had it set, and how much
+    ``options/num_options`` grew from that first row to the last. None when the start was never
+    covered."""
+    covered, options = [], []
+    with open(path, newline="") as f:
+        for row in csv.DictReader(f):
+            c = _num(row, "options/start_covered")
+            if math.isfinite(c):
+                covered.append(c > 0.5)
+                options.append(_num(row, "options/num_options", 0.0))
+    first = next((i for i, c in enumerate(covered) if c), None)
+    if first is None:
+        return None
+    losses = sum(1 for a, b in zip(covered[first:], covered[first + 1:]) if a and not b)
+    return losses, int(options[-1] - options[first])
 
 
 def _num(d: dict, key: str, default: float = math.nan) -> float:
@@ -182,6 +209,7 @@ def diagnose_run(run_dir: str) -> dict:
         verdict = f"broke late ({verdict})"
     return {"run": run_dir, "success": success, "inband": inband,
             "dips": dips(paths["metrics.csv"]), "start_covered": covered,
+            "coverage_lost": coverage_lost(paths["metrics.csv"]),
             "options": int(_num(last, "options/num_options", 0.0)), "table_full": full,
             "falls": falls, "failures": failures, "weak_links": weak, "stalled_link": stalled,
             "verdict": verdict}
@@ -210,9 +238,15 @@ def format_table(rows: Sequence[dict], root: Optional[str] = None) -> str:
         inband = r.get("inband", math.nan)
         dip = r.get("dips")
         success = f"{r['success']:.2f}" if math.isfinite(r["success"]) else "-"
+        lost = r.get("coverage_lost")
+        if lost is None:
+            lost = "-"
+        else:
+            n, links = lost
+            lost = f"{n}" + (f" (+{links} link{'' if links == 1 else 's'})" if links else "")
         cells = [run, success, f"{inband:.2f}" if math.isfinite(inband) else "-",
                  "-" if not dip or not dip[1] else f"{dip[0]} of {dip[1]}",
-                 "yes" if r["start_covered"] else "no",
+                 "yes" if r["start_covered"] else "no", lost,
                  f"{r['options']}" + (" (full)" if r["table_full"] else ""), falls,
                  ", ".join(map(str, r["weak_links"])) or "-", r["verdict"]]
         lines.append("| " + " | ".join(cells) + " |")

@@ -90,9 +90,10 @@ def test_each_failure_gets_its_verdict(tmp_path):
     assert falls["falls"] == 30 and falls["failures"] == 40 and falls["start_covered"]
     assert D.diagnose_run(str(tmp_path / "weak"))["weak_links"] == [7]   # not the global option
     table = D.format_table([D.diagnose_run(str(tmp_path / n)) for n in cases], str(tmp_path))
-    assert "| full | 0.00 | - | - | no | 24 (full) | 0 of 100 | - | table full |" in table
-    assert "| falls | 0.60 | - | - | yes | 10 | 30 of 40 | - | falls |" in table
-    assert "| late | 0.00 | 0.97 | - | yes | 10 | 0 of 100 | 23 | broke late (weak link 23) |" in table
+    # the first row had the start covered, the last not: one loss, no link since
+    assert "| full | 0.00 | - | - | no | 1 | 24 (full) | 0 of 100 | - | table full |" in table
+    assert "| falls | 0.60 | - | - | yes | 0 | 10 | 30 of 40 | - | falls |" in table
+    assert "| late | 0.00 | 0.97 | - | yes | 0 | 10 | 0 of 100 | 23 | broke late (weak link 23) |" in table
     # the summary counts kinds, details left out: "weak link 7" and "weak link 23" are one kind
     assert D.verdict_kind("stalled link (targets option 15, 1200 executions)") == "stalled link"
     assert D.verdict_kind("falls; weak links 3, 4") == "falls and weak link"
@@ -112,6 +113,31 @@ def test_each_failure_gets_its_verdict(tmp_path):
     assert D.format_means([]) == "success from the start -, in-band at the end -"
 
 
+def test_coverage_lost_counts_the_start_leaving_the_chain_after_it_was_first_covered(tmp_path):
+    """Losses count 1 -> 0 changes from the first covered row on (rows before it and rows
+    without the column do not count); links are the options made from that row to the last."""
+    d = _run(tmp_path, "flapping", {"options/start_covered": 1}, {"eval/success_rate": 0.0})
+    covered = [0, 0, 1, 1, 0, "", 0, 1, 0, 1, 1, 0, 1]
+    options = [2, 3, 9, 9, 10, 10, 10, 10, 11, 11, 11, 12, 12]
+    with open(f"{d}/metrics.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["iteration", "options/start_covered", "options/num_options"])
+        for i, (c, n) in enumerate(zip(covered, options)):
+            w.writerow([i + 1, c, n])
+    # losses at rows 5, 9 and 12 (the blank row 6 is skipped); options 9 -> 12
+    assert D.coverage_lost(f"{d}/metrics.csv") == (3, 3)
+    r = D.diagnose_run(d)
+    assert r["coverage_lost"] == (3, 3)
+    assert "| flapping | 0.00 | - | - | yes | 3 (+3 links) | 12 |" in D.format_table([r], str(tmp_path))
+    with open(f"{d}/metrics.csv", "w") as f:
+        f.write("iteration,options/start_covered,options/num_options\n1,0,2\n2,1,5\n3,1,6\n")
+    assert D.coverage_lost(f"{d}/metrics.csv") == (0, 1)
+    assert "| yes | 0 (+1 link) | 6 |" in D.format_table([D.diagnose_run(d)], str(tmp_path))
+    with open(f"{d}/metrics.csv", "w") as f:
+        f.write("iteration,options/start_covered,options/num_options\n1,0,2\n2,0,5\n")
+    assert D.coverage_lost(f"{d}/metrics.csv") is None
+
+
 def test_dips_count_periodic_evaluations_below_half_once_solved(tmp_path):
     d = _run(tmp_path, "dipping", {"options/start_covered": 1}, {"eval/success_rate": 0.9})
     rows = [0.0, "", 0.0, 0.86, 0.69, "", 0.0, 0.28, 0.93, 0.41, 0.9]
@@ -123,12 +149,12 @@ def test_dips_count_periodic_evaluations_below_half_once_solved(tmp_path):
     assert D.dips(f"{d}/metrics.csv") == (3, 7)   # 0.0, 0.28, 0.41 of the seven from 0.86 on
     r = D.diagnose_run(d)
     assert r["dips"] == (3, 7) and r["verdict"] == "solved"
-    assert "| dipping | 0.90 | - | 3 of 7 | yes |" in D.format_table([r], str(tmp_path))
+    assert "| dipping | 0.90 | - | 3 of 7 | yes | 0 |" in D.format_table([r], str(tmp_path))
     never = _run(tmp_path, "never", {}, {"eval/success_rate": 0.0})
     with open(f"{never}/metrics.csv", "w") as f:
         f.write("iteration,eval/success_rate,options/start_covered\n1,0.0,0\n2,0.5,0\n")
     assert D.dips(f"{never}/metrics.csv") == (0, 0)
-    assert "| never | 0.00 | - | - | no |" in D.format_table([D.diagnose_run(never)], str(tmp_path))
+    assert "| never | 0.00 | - | - | no | - |" in D.format_table([D.diagnose_run(never)], str(tmp_path))
 
 
 def test_diagnose_takes_groups_and_says_what_is_missing(tmp_path, capsys):
@@ -141,7 +167,7 @@ def test_diagnose_takes_groups_and_says_what_is_missing(tmp_path, capsys):
     r = D.diagnose_run(a)
     assert r["verdict"] == "unfinished (0 episodes, start covered, no final evaluation)"
     assert math.isnan(r["success"]) and D.verdict_kind(r["verdict"]) == "unfinished"
-    assert "| a | - | - | - | yes |" in D.format_table([r], str(tmp_path))
+    assert "| a | - | - | - | yes | 0 |" in D.format_table([r], str(tmp_path))
     done = _run(tmp_path, "done", {"options/start_covered": 1}, {"eval/success_rate": 0.5})
     assert D.format_summary([r, D.diagnose_run(done)]) == "2 runs: 1 start covered, failing on the way; 1 unfinished"
     assert D.format_means([r, D.diagnose_run(done)]).startswith(
