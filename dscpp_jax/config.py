@@ -24,13 +24,16 @@ SUBGOALS = ("robust", "dp")
 PRESETS = ("paper", "fast")
 HIERARCHICAL_ALGOS = ("mb_dscpp", "mf_dscpp", "dual", "dsc")
 MODEL_BASED_ALGOS = ("mb_dscpp", "mb_flat", "mb_flat_value")
-# The ant mazes whose `fast` preset turns on the chain's frontier for the skill-chaining learners
-# (beyond the paper; dscpp_jax.frontier, docs/training.md "The chain's frontier"): with junctions
-# and dead ends, the paper's linear chain turns away from the start in most seeds there. Measured
-# on the medium maze, 10 seeds each: MF-DSC++ 0.77 +- 0.05 against 0.16 +- 0.16 (5) with the
-# paper's rule, MB-DSC++ 0.72 +- 0.12 with 32 rows, 0.92 +- 0.01 with 32 rows and the paper's one
-# TD3 step per transition (experiments/results/paper/README.md).
-FRONTIER_MAZES = ("medium", "large")
+# Where the `fast` preset turns on the chain's frontier (beyond the paper; dscpp_jax.frontier,
+# docs/training.md "The chain's frontier"): the ant mazes and the skill-chaining learners it was
+# measured to pay for. With junctions and dead ends (medium, large) the paper's linear chain turns
+# away from the start in most seeds; on the medium maze, 10 seeds each: MF-DSC++ 0.77 +- 0.05
+# against 0.16 +- 0.16 (5) with the paper's rule, MB-DSC++ 0.72 +- 0.12 with 32 rows, 0.92 +- 0.01
+# with 32 rows and the paper's one TD3 step per transition (experiments/results/paper/README.md).
+# On four rooms, MB-DSC++ over 20 seeds: 0.93 +- 0.01 and every chain at the start, against
+# 0.68 +- 0.10 over 15 with 4 chains that never reached it
+# (experiments/results/time_to_result/README.md); its other skill chains are not measured there.
+FRONTIER_CHAINS = dict(medium=HIERARCHICAL_ALGOS, large=HIERARCHICAL_ALGOS, four_rooms=("mb_dscpp",))
 FRONTIER_PRESET = dict(frontier_start_prob=0.5, frontier_parent=True, frontier_radius=6.0,
                        frontier_inner_radius=3.0)
 # The TD3 of every model-free learner (mf_dscpp, dsc, dual, td3_her) on the ant medium maze, so
@@ -433,7 +436,7 @@ def preset(name: str = "fast", env: str = "point_u_maze", algo: str = "mb_dscpp"
       evaluations; stops at 2,001 episodes (or 4M env steps). On the mazes with junctions and
       dead ends (medium, large) the skill chains also use the chain's frontier (beyond the paper:
       half the training episodes start on it, and a chain that has filled a dead end branches
-      back; `FRONTIER_PRESET`). On the medium maze they have 32 option rows, MB-DSC++ runs the
+      back; `FRONTIER_PRESET`), and so does MB-DSC++ on four rooms (`FRONTIER_CHAINS`). On the medium maze they have 32 option rows, MB-DSC++ runs the
       paper's 1 TD3 step per transition (about 18 minutes for 5 seeds on one H200), and every
       model-free learner HER's `future` strategy at 0.8 with an action penalty of 2
       (`MEDIUM_MODEL_FREE_TD3`).
@@ -477,7 +480,7 @@ def preset(name: str = "fast", env: str = "point_u_maze", algo: str = "mb_dscpp"
             td3_dtype="float32" if algo in MODEL_BASED_ALGOS else "bfloat16",
             inband_eval_envs=32, eval_every=0, eval_episodes=100, checkpoint_every=25,
         )
-        if env in FRONTIER_MAZES and algo in HIERARCHICAL_ALGOS and overrides.get(
+        if algo in FRONTIER_CHAINS.get(env, ()) and overrides.get(
                 "diverse_starts", True):
             base.update(FRONTIER_PRESET)
             if env == "medium":

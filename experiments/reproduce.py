@@ -309,16 +309,24 @@ def _frontier_note(data, args) -> str:
     of this call: the chain's frontier for some skill chains (dscpp_jax.config.FRONTIER_PRESET)
     and, on the medium maze, the option rows, MB-DSC++'s TD3 ratio and the model-free learners'
     TD3 (MEDIUM_MODEL_FREE_TD3); else ""."""
-    from dscpp_jax.config import FRONTIER_PRESET, MEDIUM_MODEL_FREE_TD3, preset
+    from dscpp_jax.config import FRONTIER_PRESET, HIERARCHICAL_ALGOS, MEDIUM_MODEL_FREE_TD3, preset
     envs = {e.run_env(args.env_map) for e in data.info}
-    mazes = sorted({e.env for e in data.info
-                    if preset(args.preset, e.run_env(args.env_map), e.algo).frontier_on})
+    on, run_env = {}, {}     # per maze: the call's learners whose skill chain uses the frontier
+    for e in data.info:
+        run_env[e.env] = e.run_env(args.env_map)
+        if preset(args.preset, run_env[e.env], e.algo).frontier_on:
+            on.setdefault(e.env, set()).add(e.algo)
+    every = sorted(m for m in on if all(preset(args.preset, run_env[m], a).frontier_on
+                                        for a in HIERARCHICAL_ALGOS))
+    some = [f"{' and '.join(NAMES[a] for a in sorted(on[m]))} on {m}"
+            for m in sorted(on) if m not in every]
     parts = []
-    if mazes:
+    if on:
         sets = " ".join(f"{k}={str(v).lower() if isinstance(v, bool) else format(v, 'g')}"
                         for k, v in FRONTIER_PRESET.items())
-        parts.append(f"the preset's skill chains on {' and '.join(mazes)} use the chain's "
-                     f"frontier (`{sets}`; `docs/training.md`, \"The chain's frontier\")")
+        who = ([f"the preset's skill chains on {' and '.join(every)}"] if every else []) + some
+        parts.append(f"the chain's frontier for {' and for '.join(who)} (`{sets}`; "
+                     f"`docs/training.md`, \"The chain's frontier\")")
     if "medium" in envs:
         mb = preset(args.preset, "medium", "mb_dscpp")
         ratio = mb.td3_updates_per_step

@@ -589,11 +589,19 @@ def test_protocol_line_names_what_the_preset_adds_beyond_the_paper():
     data = types.SimpleNamespace(info=[reproduce.Exp("medium", "mb_dscpp", 2001, "0-4"),
                                        reproduce.Exp("u_maze", "mf_dscpp", 2001, "0-4")])
     note = reproduce._frontier_note(data, args)
-    assert "skill chains on medium use the chain's frontier" in note
+    assert "the chain's frontier for the preset's skill chains on medium (" in note
     assert ("on the medium maze: every skill chain 32 option rows, MB-DSC++ 1 TD3 step per "
             "transition and every model-free learner HER's `future` strategy with 0.8") in note
     data.info = data.info[1:]          # U-maze only: nothing beyond the paper to name
     assert reproduce._frontier_note(data, args) == ""
+    # four rooms: only MB-DSC++'s chain uses the frontier, so the line names it, not the maze's
+    data.info = [reproduce.Exp("four_rooms", a, 2001, "0-4") for a in ("mf_dscpp", "mb_dscpp")]
+    note = reproduce._frontier_note(data, args)
+    assert "the chain's frontier for MB-DSC++ on four_rooms (" in note, note
+    assert "skill chains on" not in note and "MF-DSC++" not in note and "medium" not in note
+    data.info.append(reproduce.Exp("medium", "dsc", 2001, "0-4"))
+    assert ("the chain's frontier for the preset's skill chains on medium and for MB-DSC++ on "
+            "four_rooms (") in reproduce._frontier_note(data, args)
     # the flat learners on the medium maze: no frontier, but the model-free TD3 is named
     data.info = [reproduce.Exp("medium", "td3_her", 2001, "0-4")]
     note = reproduce._frontier_note(data, args)
