@@ -63,7 +63,8 @@ def config_from_args(args) -> Config:
 
 def frontier_note(cfg: Config) -> str:
     """One line for a run whose skill chain uses the chain's frontier (beyond the paper; on in the
-    ant preset for the medium and large mazes and for MB-DSC++ on four rooms), saying how to train the paper's rule instead;
+    ant preset for the medium and large mazes and for MB-DSC++, MF-DSC++ and DSC on four rooms), saying
+    how to train the paper's rule instead;
     "" otherwise."""
     if not cfg.frontier_on:
         return ""

@@ -318,7 +318,9 @@ def _frontier_note(data, args) -> str:
             on.setdefault(e.env, set()).add(e.algo)
     every = sorted(m for m in on if all(preset(args.preset, run_env[m], a).frontier_on
                                         for a in HIERARCHICAL_ALGOS))
-    some = [f"{' and '.join(NAMES[a] for a in sorted(on[m]))} on {m}"
+    def listed(names):
+        return names[0] if len(names) == 1 else f"{', '.join(names[:-1])} and {names[-1]}"
+    some = [f"{listed([NAMES[a] for a in HIERARCHICAL_ALGOS if a in on[m]])} on {m}"
             for m in sorted(on) if m not in every]
     parts = []
     if on:

@@ -594,14 +594,21 @@ def test_protocol_line_names_what_the_preset_adds_beyond_the_paper():
             "transition and every model-free learner HER's `future` strategy with 0.8") in note
     data.info = data.info[1:]          # U-maze only: nothing beyond the paper to name
     assert reproduce._frontier_note(data, args) == ""
-    # four rooms: only MB-DSC++'s chain uses the frontier, so the line names it, not the maze's
-    data.info = [reproduce.Exp("four_rooms", a, 2001, "0-4") for a in ("mf_dscpp", "mb_dscpp")]
+    # four rooms: the chains of MB-DSC++, MF-DSC++ and DSC use the frontier, dual's does not, so
+    # the line names the call's learners that use it, in the preset's order, not the maze's chains
+    data.info = [reproduce.Exp("four_rooms", a, 2001, "0-4")
+                 for a in ("mf_dscpp", "dual", "td3_her", "mb_dscpp")]
     note = reproduce._frontier_note(data, args)
-    assert "the chain's frontier for MB-DSC++ on four_rooms (" in note, note
-    assert "skill chains on" not in note and "MF-DSC++" not in note and "medium" not in note
+    assert "the chain's frontier for MB-DSC++ and MF-DSC++ on four_rooms (" in note, note
+    assert "skill chains on" not in note and "dual" not in note and "medium" not in note
+    data.info.append(reproduce.Exp("four_rooms", "dsc", 2001, "0-4"))
+    assert ("the chain's frontier for MB-DSC++, MF-DSC++ and DSC on four_rooms ("
+            in reproduce._frontier_note(data, args))
     data.info.append(reproduce.Exp("medium", "dsc", 2001, "0-4"))
-    assert ("the chain's frontier for the preset's skill chains on medium and for MB-DSC++ on "
-            "four_rooms (") in reproduce._frontier_note(data, args)
+    assert ("the chain's frontier for the preset's skill chains on medium and for MB-DSC++, "
+            "MF-DSC++ and DSC on four_rooms (") in reproduce._frontier_note(data, args)
+    data.info = [reproduce.Exp("four_rooms", a, 2001, "0-4") for a in ("dual", "td3_her")]
+    assert "frontier" not in reproduce._frontier_note(data, args)
     # the flat learners on the medium maze: no frontier, but the model-free TD3 is named
     data.info = [reproduce.Exp("medium", "td3_her", 2001, "0-4")]
     note = reproduce._frontier_note(data, args)

@@ -65,10 +65,11 @@ def test_presets_keep_paper_constants():
                                                       "ant_reacher")] == [2048] + [4096] * 4
     assert preset("fast", "point_u_maze").mpc_samples == 128
     # the chain's frontier: on for the skill chains of the ant mazes with dead ends and for
-    # MB-DSC++ on four rooms, off elsewhere
+    # MB-DSC++, MF-DSC++ and DSC on four rooms (not dual, unmeasured there), off elsewhere
     for env, algo, rows in (("medium", "mb_dscpp", 32), ("medium", "mf_dscpp", 32),
                             ("medium", "dsc", 32), ("large", "mb_dscpp", 24),
-                            ("four_rooms", "mb_dscpp", 24)):
+                            ("four_rooms", "mb_dscpp", 24), ("four_rooms", "mf_dscpp", 24),
+                            ("four_rooms", "dsc", 24)):
         f = preset("fast", env, algo)
         assert (f.frontier_start_prob, f.frontier_parent, f.frontier_radius,
                 f.frontier_inner_radius, f.max_options) == (0.5, True, 6.0, 3.0, rows), (env, algo)
@@ -76,7 +77,7 @@ def test_presets_keep_paper_constants():
     assert [preset("fast", e, a).td3_updates_per_step for e, a in (
         ("medium", "mb_dscpp"), ("large", "mb_dscpp"), ("u_maze", "mb_dscpp"),
         ("medium", "mb_flat_value"), ("medium", "mf_dscpp"))] == [1.0, 0.25, 0.25, 0.25, 1.0]
-    for env, algo in (("u_maze", "mb_dscpp"), ("four_rooms", "mf_dscpp"), ("four_rooms", "dsc"),
+    for env, algo in (("u_maze", "mb_dscpp"), ("four_rooms", "dual"), ("four_rooms", "td3_her"),
                       ("point_four_rooms", "mb_dscpp"), ("medium", "td3_her"),
                       ("medium", "mb_flat"), ("point_medium", "mb_dscpp")):
         f = preset("fast", env, algo)
