@@ -63,9 +63,8 @@ def config_from_args(args) -> Config:
 
 def frontier_note(cfg: Config) -> str:
     """One line for a run whose skill chain uses the chain's frontier (beyond the paper; on in the
-    ant preset for the medium and large mazes and for MB-DSC++, MF-DSC++ and DSC on four rooms), saying
-    how to train the paper's rule instead;
-    "" otherwise."""
+    ant preset for the medium and large mazes and for MB-DSC++, MF-DSC++ and DSC on four rooms),
+    saying how to train the paper's rule instead; "" otherwise."""
     if not cfg.frontier_on:
         return ""
     return (f"{cfg.env}: the chain's frontier is on (beyond the paper: frontier_start_prob="

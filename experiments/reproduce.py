@@ -304,6 +304,11 @@ def _eval_iteration(seed_dir: str) -> Optional[int]:
         return None
 
 
+def _listed(names) -> str:
+    """'A', 'A and B', 'A, B and C'."""
+    return names[0] if len(names) == 1 else f"{', '.join(names[:-1])} and {names[-1]}"
+
+
 def _frontier_note(data, args) -> str:
     """A sentence for the protocol line on what the preset adds beyond the paper for the groups
     of this call: the chain's frontier for some skill chains (dscpp_jax.config.FRONTIER_PRESET)
@@ -318,15 +323,13 @@ def _frontier_note(data, args) -> str:
             on.setdefault(e.env, set()).add(e.algo)
     every = sorted(m for m in on if all(preset(args.preset, run_env[m], a).frontier_on
                                         for a in HIERARCHICAL_ALGOS))
-    def listed(names):
-        return names[0] if len(names) == 1 else f"{', '.join(names[:-1])} and {names[-1]}"
-    some = [f"{listed([NAMES[a] for a in HIERARCHICAL_ALGOS if a in on[m]])} on {m}"
+    some = [f"{_listed([NAMES[a] for a in HIERARCHICAL_ALGOS if a in on[m]])} on {m}"
             for m in sorted(on) if m not in every]
     parts = []
     if on:
         sets = " ".join(f"{k}={str(v).lower() if isinstance(v, bool) else format(v, 'g')}"
                         for k, v in FRONTIER_PRESET.items())
-        who = ([f"the preset's skill chains on {' and '.join(every)}"] if every else []) + some
+        who = ([f"the preset's skill chains on {_listed(every)}"] if every else []) + some
         parts.append(f"the chain's frontier for {' and for '.join(who)} (`{sets}`; "
                      f"`docs/training.md`, \"The chain's frontier\")")
     if "medium" in envs:
