@@ -4,6 +4,11 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed-stamp
 
+# GPU=1 installs JAX's CUDA wheels and MuJoCo Warp (the `cuda` extra); GPU=0 the CPU build. By
+# default the GPU build is chosen where `nvidia-smi` lists a GPU.
+GPU ?= $(shell nvidia-smi -L >/dev/null 2>&1 && echo 1 || echo 0)
+EXTRAS := dev,tensorboard,wandb,video,$(if $(filter 1,$(GPU)),cuda,warp)
+
 ENV   ?= point_u_maze
 ALGO  ?= mb_dscpp
 SEED  ?= 0
@@ -19,8 +24,17 @@ LIMIT ?= 600
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -m pip install -q -e '.[dev,tensorboard,wandb,video,warp]'
-	touch $(STAMP)
+	$(BIN)/python -m pip install -q -e '.[$(EXTRAS)]'
+	echo '$(EXTRAS)' > $(STAMP)
+
+# Re-install when the GPU choice changed since the last install (a CPU build on a GPU machine).
+ifneq ($(wildcard $(STAMP)),)
+ifneq ($(shell cat $(STAMP) 2>/dev/null),$(EXTRAS))
+$(STAMP): FORCE
+endif
+endif
+.PHONY: FORCE
+FORCE:
 
 install: $(STAMP)
 
