@@ -389,8 +389,8 @@ class Config:
                              f"Config ({e})") from None
 
     def validate(self) -> "Config":
-        """Raise a ValueError naming the fix for any impossible setting (a field of the wrong type or
-        value, or settings that do not go together); return self."""
+        """Raise a ValueError naming the fix for any impossible setting (a field of the wrong
+        type or value, or settings that do not go together); return self."""
         def need(cond: bool, msg: str) -> None:
             if not cond:
                 raise ValueError(f"invalid config: {msg}")
@@ -481,8 +481,6 @@ class Config:
         return self
 
 
-
-
 # ------------------------------------------------------------------------------------------------
 # Field checks
 # ------------------------------------------------------------------------------------------------
@@ -494,7 +492,7 @@ _TYPE_NAMES = {"int": "an integer", "float": "a number", "bool": "true or false"
 
 
 def _one_of(choices) -> str:
-    """"a, b or c" for up to three choices, else "one of a, b, ..."."""
+    """The choices in words: `a, b or c` for up to three, else `one of a, b, c, d`."""
     names = [str(c) for c in choices]
     if len(names) <= 3:
         return ", ".join(names[:-1]) + " or " + names[-1] if len(names) > 1 else names[0]

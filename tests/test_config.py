@@ -183,7 +183,8 @@ def test_a_saved_run_with_a_dropped_value_loads_but_does_not_validate():
 def test_preset_refuses_unknown_presets_environments_learners_and_fields():
     with pytest.raises(ValueError, match="unknown preset 'quick'.*paper.*fast"):
         preset("quick")
-    with pytest.raises(ValueError, match="unknown env name 'no_such_maze'.*valid names.*point_u_maze"):
+    with pytest.raises(ValueError,
+                       match="unknown env name 'no_such_maze'.*valid names.*point_u_maze"):
         preset("fast", "no_such_maze")
     with pytest.raises(ValueError, match="unknown learner algo='nope'.*mb_dscpp.*td3_her"):
         preset(algo="nope")
