@@ -1,22 +1,31 @@
-"""The run configuration: one frozen, hashable dataclass with the paper's constants as defaults.
+"""The run configuration: one frozen, hashable dataclass with the paper's constants as defaults,
+and the presets, a table of field overrides per environment family and learner.
 
-`Config` holds every static size and hyperparameter of a run. It is hashable so that it can be a
-static argument of `jax.jit`; it is never mutated (use `dataclasses.replace` or `Config.override`).
-`Config.validate()` runs before anything is compiled and raises a `ValueError` that says what to
-change.
+`Config` holds every static size and hyperparameter of a run, each field documented where it is
+declared. It is hashable so that it can be a static argument of `jax.jit`; it is never mutated
+(use `dataclasses.replace` or `Config.override`). Constructing one checks every field's type;
+`Config.override` and `Config.validate()` also check the value of each field with a fixed set
+of values (`CHOICES`), and `validate()`, which runs before anything is compiled, checks the
+settings against each other. Each raises a `ValueError` that names the field and says
+what to change. (A config loaded from a saved run is only type-checked, so that a run made with a
+value this version no longer has can still be read.)
 
-Presets:
-- `paper`: the published schedule as far as a batched design allows (B = 1 environment, one TD3
-  gradient step per stored transition, 14,000 x 7 MPC, 50 random warm-up episodes, gestation 10,
-  buffer 50, timeout 200, 1000-step episodes, 2,000 episodes).
-- `fast`: tuned for wall-clock per environment family (many parallel environments, fewer MPC samples
-  on the point-mass twins, shorter warm-up); see `preset()` for the exact differences.
+Presets (`preset(name, env, algo, **overrides)`, the table `PRESET_TABLE`):
+- `paper`: the published schedule as far as a batched design allows: one environment, one TD3
+  gradient step per stored transition, the paper's MPC, warm-up, gestation, buffer, timeout,
+  episode length and number of episodes.
+- `fast`: tuned for wall-clock per environment family: many parallel environments, a smaller
+  model on the point-mass twins, in-band evaluation on the ant mazes, and on the ant mazes with
+  junctions and dead ends the chain's frontier (`FRONTIER_TABLE`).
+
+Why each preset value was chosen, with the study behind it: docs/presets.md.
 """
 from __future__ import annotations
 
 import dataclasses
 import json
-from dataclasses import dataclass, field
+import numbers
+from dataclasses import dataclass
 from typing import Any
 
 ALGOS = ("mb_dscpp", "mf_dscpp", "dual", "dsc", "td3_her", "mb_flat", "mb_flat_value")
@@ -24,26 +33,30 @@ SUBGOALS = ("robust", "dp")
 PRESETS = ("paper", "fast")
 HIERARCHICAL_ALGOS = ("mb_dscpp", "mf_dscpp", "dual", "dsc")
 MODEL_BASED_ALGOS = ("mb_dscpp", "mb_flat", "mb_flat_value")
-# Where the `fast` preset turns on the chain's frontier (beyond the paper; dscpp_jax.frontier,
-# docs/training.md "The chain's frontier"): the ant mazes and the skill-chaining learners it was
-# measured to pay for. With junctions and dead ends (medium, large) the paper's linear chain turns
-# away from the start in most seeds; on the medium maze, 10 seeds each: MF-DSC++ 0.77 +- 0.05
-# against 0.16 +- 0.16 (5) with the paper's rule, MB-DSC++ 0.72 +- 0.12 with 32 rows, 0.92 +- 0.01
-# with 32 rows and the paper's one TD3 step per transition (experiments/results/paper/README.md).
-# On four rooms (experiments/results/time_to_result/README.md): MB-DSC++ over 20 seeds
-# 0.93 +- 0.01 and every chain at the start, against 0.68 +- 0.10 over 15 with 4 chains that never
-# reached it; MF-DSC++ over 10 seeds 0.915 +- 0.014 against 0.87 +- 0.02 (5), at 0.8 after 925
-# episodes instead of 1,571; DSC over 10 seeds 0.81 +- 0.09 against 0.46 +- 0.19 (5). The dual
-# learner is not measured there and keeps the paper's rule.
+MODEL_FREE_ALGOS = tuple(a for a in ALGOS if a not in MODEL_BASED_ALGOS)
+# The environments `envs.make` builds by name: the ant mazes and their point-mass twins.
+MAZES = ("u_maze", "medium", "large", "four_rooms", "ant_reacher")
+ENV_FAMILIES = dict(ant=MAZES, point=tuple("point_" + m for m in MAZES))
+ENV_NAMES = ENV_FAMILIES["ant"] + ENV_FAMILIES["point"]
+# Learner classes a preset entry can be keyed by (besides "*" and a single algorithm).
+LEARNER_CLASSES = dict(model_based=MODEL_BASED_ALGOS, model_free=MODEL_FREE_ALGOS)
+# The values a string field can take (the others, env included, are free strings; `envs.make`
+# checks the env name).
+DTYPES = ("float32", "bfloat16")
+KERNEL_BACKENDS = ("auto", "xla", "pallas")
+CHOICES: dict[str, tuple] = dict(
+    algo=ALGOS, subgoal=SUBGOALS, preset=PRESETS, her_strategy=("final", "future", "none"),
+    physics=("auto", "jax", "warp"), ant_integrator=("Euler", "RK4", "implicitfast"),
+    td3_dtype=DTYPES, mpc_dtype=DTYPES, mpc_backend=KERNEL_BACKENDS, svm_backend=KERNEL_BACKENDS)
+
+# The ant mazes and learners whose skill chains use the chain's frontier in the `fast` preset
+# (beyond the paper; dscpp_jax.frontier); `FRONTIER_TABLE` holds what it sets.
 FRONTIER_CHAINS = dict(medium=HIERARCHICAL_ALGOS, large=HIERARCHICAL_ALGOS,
                        four_rooms=("mb_dscpp", "mf_dscpp", "dsc"))
 FRONTIER_PRESET = dict(frontier_start_prob=0.5, frontier_parent=True, frontier_radius=6.0,
                        frontier_inner_radius=3.0)
-# The TD3 of every model-free learner (mf_dscpp, dsc, dual, td3_her) on the ant medium maze, so
-# that they keep one TD3 configuration there: HER's `future` strategy at 0.8 and twice the action
-# penalty (beyond the paper). With 32 option rows, MF-DSC++ reached 0.91 +- 0.02 over 15 seeds
-# (0.87 +- 0.05 over 20), against 0.65 +- 0.08 with `final` at 0.5 and the penalty of 1
-# (experiments/results/paper/README.md, sixteenth round).
+# The TD3 of every model-free learner (mf_dscpp, dsc, dual, td3_her) on the ant medium maze in the
+# `fast` preset (beyond the paper): HER's `future` strategy and a larger action penalty.
 MEDIUM_MODEL_FREE_TD3 = dict(her_strategy="future", her_relabel_prob=0.8, td3_action_l2=2.0)
 # Config fields that were removed, with the value that meant "off" (their default then): a saved
 # run that set one of them otherwise cannot be reproduced by this version (`Config.from_saved`).
@@ -64,119 +77,191 @@ LEGACY_DEFAULTS = dict(physics="jax")
 
 @dataclass(frozen=True)
 class Config:
-    """Everything static about a training run (sizes, schedule, hyperparameters)."""
+    """Everything static about a training run (sizes, schedule, hyperparameters).
+
+    Units: env steps are steps of one environment unless a field says "all environments
+    together"; distances are in the maze's x-y units (the ant's and the point mass's positions);
+    cadences count `train_step` calls."""
 
     # --- task and algorithm -------------------------------------------------------------------
-    env: str = "point_u_maze"          # envs.make name
-    ant_integrator: str = "Euler"      # ant physics: Euler (fast) | RK4 (D4RL's) | implicitfast
-    physics: str = "auto"              # ant physics back end: jax (MJX) | warp (MuJoCo Warp) |
-                                       # auto (warp on a GPU with warp-lang installed, else jax)
-    group_size: int = 1                # seeds trained together in one program (seed groups)
-    algo: str = "mb_dscpp"             # one of ALGOS
-    subgoal: str = "robust"            # robust | dp
+    env: str = "point_u_maze"
+    """environment name for `envs.make`: an ant maze (one of MAZES) or its point-mass twin
+    (point_ + the maze)"""
+    ant_integrator: str = "Euler"
+    """MuJoCo integrator of the ant: Euler (fast), RK4 (D4RL's) or implicitfast"""
+    physics: str = "auto"
+    """ant physics back end: jax (MJX), warp (MuJoCo Warp) or auto (warp on a GPU with warp-lang
+    installed, else jax)"""
+    group_size: int = 1
+    """seeds trained together in one program (a seed group)"""
+    algo: str = "mb_dscpp"
+    """the learner, one of ALGOS"""
+    subgoal: str = "robust"
+    """how a subgoal is chosen in the target option's initiation region: robust or dp"""
     seed: int = 0
+    """the run's random seed (>= 0)"""
 
     # --- batching -----------------------------------------------------------------------------
-    num_envs: int = 1                  # B parallel environments
-    steps_per_iter: int = 1000         # T env steps per train_step (per environment)
-    total_env_steps: int = 2_001_000   # stop after this many env steps (all envs together)
-    total_episodes: int = 0            # also stop once this many episodes finished (0: no limit)
+    num_envs: int = 1
+    """B: parallel training environments"""
+    steps_per_iter: int = 1000
+    """T: env steps per environment in one train_step call"""
+    total_env_steps: int = 2_001_000
+    """stop after this many env steps (all environments together)"""
+    total_episodes: int = 0
+    """also stop once this many episodes have finished (0: no limit)"""
 
     # --- episodes and options (paper constants) ----------------------------------------------
     episode_length: int = 1000
-    warmup_episodes: int = 50          # uniform-random episodes from the task start
+    """env steps per episode"""
+    warmup_episodes: int = 50
+    """uniform-random episodes from the task start before learning"""
     goal_tolerance: float = 0.6
+    """radius of the task's goal region and of a subgoal's region (distance)"""
     gestation: int = 10
+    """successful executions before a new option is mature"""
     buffer_len: int = 50
+    """positions kept after the start state of a successful execution (env steps)"""
     option_timeout: int = 200
-    max_options: int = 12              # fixed capacity of the option table (global + goal + links)
+    """env steps before an option's execution counts as a failure"""
+    max_options: int = 12
+    """capacity of the option table: the global option, the goal option and the chain's links"""
     max_pos_traj: int = 100
+    """successful trajectories kept per option (a ring)"""
     max_neg: int = 100
+    """failed start states kept per option (a ring)"""
     svm_gamma: float = 0.5
-    diverse_starts: bool = True        # training episodes after warm-up start anywhere free
-    task_start_prob: float = 0.0       # with diverse starts: the share of training episodes after
-                                       # warm-up that start at the task start instead
-    # the chain's frontier (beyond the paper; dscpp_jax.frontier, docs/training.md): uncovered free
-    # space within frontier_radius of an option's examples, estimated from frontier_candidates
-    # diverse-start draws; a row's frontier is open with at least frontier_min_open of them
-    frontier_start_prob: float = 0.0   # with diverse starts: the share of training episodes after
-                                       # warm-up that start on the frontier of the option that the
-                                       # link in gestation targets
-    frontier_parent: bool = False      # a new option targets the newest mature option with an
-                                       # open frontier; a link in gestation whose target's frontier
-                                       # closed (a filled dead end) is re-targeted there
+    """RBF kernel coefficient of the initiation classifiers (1 / distance squared)"""
+    diverse_starts: bool = True
+    """training episodes after warm-up start anywhere free (False: at the task start)"""
+    task_start_prob: float = 0.0
+    """with diverse starts: the share of training episodes after warm-up that start at the task
+    start instead (a probability)"""
+    # The chain's frontier (beyond the paper; dscpp_jax.frontier): uncovered free space within
+    # frontier_radius of an option's examples, estimated from frontier_candidates diverse-start
+    # draws; a row's frontier is open with at least frontier_min_open of them.
+    frontier_start_prob: float = 0.0
+    """with diverse starts: the share of training episodes after warm-up that start on the
+    frontier of the option that the link in gestation targets (a probability; 0: off)"""
+    frontier_parent: bool = False
+    """a new option targets the newest mature option with an open frontier; a link in gestation
+    whose target's frontier closed (a filled dead end) is re-targeted there"""
     frontier_radius: float = 5.0
-    frontier_inner_radius: float = 0.0  # frontier starts keep at least this far from the target's
-                                       # examples (longer links; 0: anywhere on the frontier)
+    """how far the frontier reaches from an option's examples (distance)"""
+    frontier_inner_radius: float = 0.0
+    """frontier starts keep at least this far from the target's examples (distance; 0: anywhere
+    on the frontier)"""
     frontier_candidates: int = 512
+    """diverse-start draws the frontier is estimated from"""
     frontier_min_open: int = 4
-    eval_prefer_pessimistic: bool = True  # evaluation's policy over options tries pessimistic
-                                       # regions first (False: the paper's walk, as in training)
+    """draws on a row's frontier for it to count as open"""
+    eval_prefer_pessimistic: bool = True
+    """evaluation's policy over options tries pessimistic regions first (False: the paper's walk,
+    as in training)"""
 
     # --- TD3 + HER ----------------------------------------------------------------------------
     td3_hidden: int = 256
+    """width of the hidden layers of TD3's actor and critics (units)"""
     td3_batch_size: int = 100
-    td3_updates_per_step: float = 1.0  # gradient steps per stored env transition
-    td3_sample_block: int = 1          # minibatches drawn per replay sampling call (1: one per
-                                       # gradient step; > 1: fewer, larger gathers, same math)
-    td3_lr: float = -1.0               # < 0: the algorithm's preset (1e-5 model based, 3e-4 free)
-    td3_clip_targets: bool = False     # clip TD targets to [-1 / (1 - discount), 0], the range of
-                                       # every value under the 0 / -1 reward (not in the original)
-    td3_action_l2: float = 0.0         # actor loss + L2 * mean(a^2) (OpenAI Baselines' HER: 1.0;
-                                       # 0: off, as in the original)
-    td3_dtype: str = "float32"         # matmul operands and activations of TD3's networks:
-                                       # float32 or bfloat16 (the hidden layers; the first and
-                                       # output layers, parameters, optimiser state, losses
-                                       # and targets stay float32; the ant fast preset's
-                                       # model-free learners use bfloat16)
-    shared_critic: bool = True         # one goal-conditioned TD3 for every option (the paper's
-                                       # DSC++); False: one TD3 per option slot, each learning
-                                       # from its own transitions (appendix Figure 2; model free)
+    """transitions per TD3 minibatch"""
+    td3_updates_per_step: float = 1.0
+    """TD3 gradient steps per stored env transition"""
+    td3_sample_block: int = 1
+    """minibatches drawn per replay sampling call (1: one per gradient step; > 1: fewer, larger
+    gathers, same math)"""
+    td3_lr: float = -1.0
+    """Adam learning rate of TD3 (< 0: the learner's own, 1e-5 model based, 3e-4 model free)"""
+    td3_clip_targets: bool = False
+    """clip TD targets to [-1 / (1 - discount), 0], the range of every value under the 0 / -1
+    reward (not in the original)"""
+    td3_action_l2: float = 0.0
+    """weight of the actor's action penalty: actor loss + td3_action_l2 * mean(a^2) (OpenAI
+    Baselines' HER: 1; 0: off, as in the original)"""
+    td3_dtype: str = "float32"
+    """matmul operands and activations of TD3's hidden layers: float32 or bfloat16 (the first and
+    output layers, parameters, optimiser state, losses and targets stay float32)"""
+    shared_critic: bool = True
+    """one goal-conditioned TD3 for every option (the paper's DSC++); False: one TD3 per option
+    slot, each learning from its own transitions (appendix Figure 2; model free)"""
     discount: float = 0.99
+    """TD3's discount per env step"""
     replay_capacity: int = 1_000_000
-    her_strategy: str = "final"        # final | future | none
+    """replay buffer size in transitions (all environments together)"""
+    her_strategy: str = "final"
+    """hindsight relabelling: final, future or none"""
     her_relabel_prob: float = 0.5
-    action_noise: float = 0.1          # Gaussian N(0, 0.1) on the actor's action
-    random_action_prob: float = -1.0   # < 0: 0.1 model based, 0.2 model free
-    mf_initial_random_prob: float = 0.8  # model free: 0.8 until `mf_random_decay_successes`
+    """probability that a sampled transition's goal is relabelled"""
+    action_noise: float = 0.1
+    """standard deviation of the Gaussian noise on the actor's action (action units)"""
+    random_action_prob: float = -1.0
+    """probability of a uniform-random action when exploring (< 0: 0.1 model based, 0.2 model
+    free)"""
+    mf_initial_random_prob: float = 0.8
+    """model free: the random-action probability until mf_random_decay_successes"""
     mf_random_decay_successes: int = 3
+    """model free: successes after which random_action_prob replaces mf_initial_random_prob"""
 
     # --- dynamics model + MPC -------------------------------------------------------------------
     dyn_hidden: int = 500
+    """width of the dynamics model's hidden layers (units)"""
     dyn_ensemble: int = 1
+    """members of the dynamics model's ensemble"""
     dyn_batch_size: int = 1024
+    """transitions per dynamics-model minibatch"""
     dyn_lr: float = 1e-3
-    dyn_updates_per_step: float = 0.25  # model gradient steps per stored env transition
-    dyn_pretrain_steps: int = 2000     # model steps once the warm-up data is in (~50 epochs)
+    """Adam learning rate of the dynamics model"""
+    dyn_updates_per_step: float = 0.25
+    """dynamics-model gradient steps per stored env transition"""
+    dyn_pretrain_steps: int = 2000
+    """dynamics-model gradient steps once the warm-up data is in"""
     model_capacity: int = 300_000
+    """the dynamics model's transition buffer size (all environments together)"""
     mpc_samples: int = 14_000
+    """action sequences MPC samples per decision"""
     mpc_horizon: int = 7
+    """env steps each sampled action sequence looks ahead"""
     mpc_discount: float = 0.95
+    """discount per step of MPC's return (also of the DP subgoals' value table)"""
     mpc_dtype: str = "float32"
-    mpc_backend: str = "auto"          # auto: the fused kernel on a GPU with bfloat16, else XLA
-    svm_backend: str = "auto"          # auto: the fused SMO kernel on a GPU, else the XLA loop
+    """precision of MPC's rollouts: float32 or bfloat16"""
+    mpc_backend: str = "auto"
+    """MPC's kernel: xla, pallas (the fused kernel; bfloat16) or auto (pallas on a GPU with
+    bfloat16, else xla)"""
+    svm_backend: str = "auto"
+    """the classifiers' SMO solver: xla (a loop), pallas (the fused kernel) or auto (pallas on a
+    GPU, else xla)"""
 
     # --- in-band evaluation (inside train_step) -------------------------------------------------
-    inband_eval_envs: int = 0          # E extra envs that run evaluation episodes from the task
-                                       # start in the same scan as the training envs: the
-                                       # deterministic evaluation policy, nothing written to
-                                       # learning state (0: off; metrics inband/*)
-    inband_eval_window: int = 0        # inband/success_rate over the last K finished in-band
-                                       # episodes (0: K = inband_eval_envs)
-    inband_eval_batched: bool = True   # step the in-band envs in one physics batch with the
-                                       # training envs (B + E); False: a second physics step.
-                                       # MJX (JAX) ant physics may round a B + E batch
-                                       # differently, so training then matches a run without
-                                       # in-band envs only to rounding; False keeps it bitwise.
-                                       # Point mass and MuJoCo Warp: exact either way
+    inband_eval_envs: int = 0
+    """E: extra environments that run evaluation episodes from the task start in the same scan as
+    the training environments, with the deterministic evaluation policy and nothing written to
+    learning state (0: off; metrics inband/*)"""
+    inband_eval_window: int = 0
+    """inband/success_rate averages the last K finished in-band episodes (0: K =
+    inband_eval_envs)"""
+    inband_eval_batched: bool = True
+    """step the in-band environments in one physics batch with the training environments
+    (B + E); False: a second physics step. MJX (JAX) ant physics may round a B + E batch
+    differently, so training then matches a run without in-band environments only to rounding;
+    False keeps it bitwise. Point mass and MuJoCo Warp: exact either way"""
 
     # --- evaluation, logging, checkpoints (host side) -----------------------------------------
-    eval_every: int = 10               # train_step calls between evaluations (0: never)
+    eval_every: int = 10
+    """train_step calls between evaluations (0: never)"""
     eval_episodes: int = 4
+    """episodes per evaluation"""
     log_every: int = 1
-    checkpoint_every: int = 20         # train_step calls between checkpoints (0: only at exit)
+    """unused, kept so that saved configs load (metrics are logged after every train_step
+    call)"""
+    checkpoint_every: int = 20
+    """train_step calls between checkpoints (0: only at exit)"""
     keep_checkpoints: int = 2
+    """checkpoints kept in the run directory (the newest)"""
     preset: str = "paper"
+    """the preset this config came from (one of PRESETS)"""
+
+    def __post_init__(self):
+        check_fields(self, values=False)   # a saved run may hold a value this version dropped
 
     # ------------------------------------------------------------------------------------------
     @property
@@ -248,11 +333,14 @@ class Config:
 
     # ------------------------------------------------------------------------------------------
     def override(self, **kw: Any) -> "Config":
-        """A copy with some fields replaced (unknown names raise a ValueError)."""
+        """A copy with some fields replaced; unknown names, and values that do not fit their field
+        (`check_field`), raise a ValueError."""
         names = {f.name for f in dataclasses.fields(self)}
         bad = sorted(set(kw) - names)
         if bad:
             raise ValueError(f"unknown config field(s) {bad}; valid fields: {sorted(names)}")
+        for name, value in kw.items():
+            check_field(name, value)
         return dataclasses.replace(self, **kw)
 
     def device_view(self) -> "Config":
@@ -296,21 +384,18 @@ class Config:
                 f"versions.dscpp_jax_git) or train a new run")
         try:
             return cls.from_dict(d)
-        except TypeError as e:
+        except (TypeError, ValueError) as e:
             raise ValueError(f"{source}: config.json's \"config\" does not fit this version's "
                              f"Config ({e})") from None
 
     def validate(self) -> "Config":
-        """Raise a ValueError naming the fix for any impossible setting; return self."""
+        """Raise a ValueError naming the fix for any impossible setting (a field of the wrong
+        type or value, or settings that do not go together); return self."""
         def need(cond: bool, msg: str) -> None:
             if not cond:
                 raise ValueError(f"invalid config: {msg}")
 
-        need(self.algo in ALGOS, f"algo={self.algo!r}; choose one of {ALGOS}")
-        need(self.subgoal in SUBGOALS, f"subgoal={self.subgoal!r}; choose one of {SUBGOALS}")
-        need(self.preset in PRESETS, f"preset={self.preset!r}; choose one of {PRESETS}")
-        need(self.her_strategy in ("final", "future", "none"),
-             f"her_strategy={self.her_strategy!r}; choose final, future or none")
+        check_fields(self)
         for name in ("num_envs", "steps_per_iter", "episode_length", "option_timeout", "buffer_len",
                      "gestation", "td3_batch_size", "dyn_batch_size", "mpc_samples", "mpc_horizon",
                      "eval_episodes", "max_pos_traj", "max_neg", "td3_hidden", "dyn_hidden",
@@ -341,17 +426,8 @@ class Config:
         need(self.td3_sample_block >= 1,
              f"td3_sample_block must be >= 1 (1: one replay sample per gradient step), got "
              f"{self.td3_sample_block}")
-        need(self.mpc_dtype in ("float32", "bfloat16"), "mpc_dtype must be float32 or bfloat16")
         need(self.td3_action_l2 >= 0, "td3_action_l2 must be >= 0 (0: off)")
-        need(self.td3_dtype in ("float32", "bfloat16"), "td3_dtype must be float32 or bfloat16")
-        need(self.physics in ("auto", "jax", "warp"),
-             f"physics={self.physics!r}; choose auto, jax (MJX) or warp (MuJoCo Warp)")
         need(self.group_size >= 1, f"group_size={self.group_size} must be >= 1")
-        need(self.ant_integrator in ("Euler", "RK4", "implicitfast"),
-             f"ant_integrator must be Euler, RK4 or implicitfast, got {self.ant_integrator!r}")
-        for name in ("mpc_backend", "svm_backend"):
-            need(getattr(self, name) in ("auto", "xla", "pallas"),
-                 f"{name}={getattr(self, name)!r}; choose auto, xla or pallas")
         need(self.mpc_backend != "pallas" or self.mpc_dtype == "bfloat16",
              "mpc_backend=pallas computes in bfloat16: also set mpc_dtype=bfloat16 (or use "
              "mpc_backend=xla)")
@@ -397,8 +473,6 @@ class Config:
         need(self.frontier_candidates >= 1 and self.frontier_min_open >= 1,
              f"frontier_candidates={self.frontier_candidates} and frontier_min_open="
              f"{self.frontier_min_open} must be >= 1")
-        need(isinstance(self.shared_critic, bool),
-             f"shared_critic={self.shared_critic!r} must be True or False")
         need(self.shared_critic or not self.model_based,
              f"shared_critic=False (one TD3 per option) is implemented for the model-free "
              f"algorithms only ({', '.join(a for a in ALGOS if a not in MODEL_BASED_ALGOS)}): "
@@ -408,57 +482,76 @@ class Config:
 
 
 # ------------------------------------------------------------------------------------------------
+# Field checks
+# ------------------------------------------------------------------------------------------------
+_FIELD_TYPES: dict[str, str] = {f.name: f.type if isinstance(f.type, str) else f.type.__name__
+                                for f in dataclasses.fields(Config)}
+_DEFAULTS: dict[str, Any] = {f.name: f.default for f in dataclasses.fields(Config)}
+_TYPE_NAMES = {"int": "an integer", "float": "a number", "bool": "true or false",
+               "str": "a string"}
+
+
+def _one_of(choices) -> str:
+    """The choices in words: `a, b or c` for up to three, else `one of a, b, c, d`."""
+    names = [str(c) for c in choices]
+    if len(names) <= 3:
+        return ", ".join(names[:-1]) + " or " + names[-1] if len(names) > 1 else names[0]
+    return "one of " + ", ".join(names)
+
+
+def _type_ok(kind: str, value: Any) -> bool:
+    if kind == "bool":
+        return isinstance(value, bool)
+    if kind == "int":
+        return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+    if kind == "float":
+        return isinstance(value, numbers.Real) and not isinstance(value, bool)
+    return isinstance(value, str)
+
+
+def check_field(name: str, value: Any, values: bool = True) -> None:
+    """Raise a ValueError naming the field, the value and what it takes if `value` does not fit
+    Config field `name`: its declared type (a float field takes an int too) and, with `values`,
+    for the fields of `CHOICES`, one of the listed values."""
+    kind = _FIELD_TYPES[name]
+    if not _type_ok(kind, value):
+        raise ValueError(f"invalid config: {name}={value!r} ({type(value).__name__}); {name} is "
+                         f"{_TYPE_NAMES[kind]} ({kind}), e.g. {name}={_DEFAULTS[name]!r}")
+    if values and name in CHOICES and value not in CHOICES[name]:
+        allowed = CHOICES[name]
+        say = (f"choose {_one_of(allowed)}" if len(allowed) > 3 else
+               f"{name} must be {_one_of(allowed)}")
+        raise ValueError(f"invalid config: {name}={value!r}; {say}")
+
+
+def check_fields(config: Config, values: bool = True) -> None:
+    """`check_field` for every field of `config`."""
+    for name in _FIELD_TYPES:
+        check_field(name, getattr(config, name), values)
+
+
+# ------------------------------------------------------------------------------------------------
 # Presets
 # ------------------------------------------------------------------------------------------------
-def _is_point(env: str) -> bool:
-    return env.startswith("point_")
-
-
-def preset(name: str = "fast", env: str = "point_u_maze", algo: str = "mb_dscpp",
-           **overrides: Any) -> Config:
-    """A named preset for an env and algorithm, with field overrides applied last.
-
-    paper: the published schedule as far as a batched design allows: B = 1 environment, T = 1000
-      steps per iteration, one TD3 step per transition, 14,000 x 7 MPC, 50 warm-up episodes, 2,001
-      episodes, and on the ant D4RL's RK4 integrator. Learning and classifier refits happen once
-      per T steps rather than after every option rollout. Slow by design (hours on the ant).
-    fast, point-mass twins (a laptop CPU, a few minutes): 16 envs x 100 steps, 500-step episodes,
-      8 warm-up episodes, 128 x 7 MPC with a 2 x 64 model, a 2 x 64 actor/critic at 3e-4 with 0.25
-      TD3 steps per transition for both variants, gestation 5 (the paper's U-maze value), at most
-      8 options, 100k env steps.
-    fast, ant mazes (one GPU, 2,001 episodes in about 6-14 minutes): 128 envs x 50 steps,
-      1000-step episodes, 4,096 x 7 MPC in bfloat16 (the fused kernel on a GPU; 2,048 x 7 on the
-      U-maze, as good there and 1.6x the model-based seed group's speed), 0.1 model steps per
-      transition; TD3 at 0.25 steps per transition, batch 256 and 1e-4 (model based) or the
-      paper's 1 step per transition at batch 512 and 3e-4 with an L2 action penalty of 1 (model
-      free; bf16 in TD3's hidden layers, as fast in a seed group and as good on the ant, float32
-      for the model-based learners); TD targets clipped to [-1 / (1 - discount), 0] (keeps the model-based critic stable);
-      32 minibatches per replay sampling call (speed); RK4 (fewer tip-overs); gestation 5 (10 on
-      four rooms, appendix Table 4); up to 24 options; evaluation inside training (32 in-band
-      envs, success every iteration) and 100 episodes at the end instead of periodic
-      evaluations; stops at 2,001 episodes (or 4M env steps). On the mazes with junctions and
-      dead ends (medium, large) the skill chains also use the chain's frontier (beyond the paper:
-      half the training episodes start on it, and a chain that has filled a dead end branches
-      back; `FRONTIER_PRESET`), and so do MB-DSC++, MF-DSC++ and DSC on four rooms
-      (`FRONTIER_CHAINS`). On the medium maze they have 32 option rows, MB-DSC++ runs the
-      paper's 1 TD3 step per transition (about 18 minutes for 5 seeds on one H200), and every
-      model-free learner HER's `future` strategy at 0.8 with an action penalty of 2
-      (`MEDIUM_MODEL_FREE_TD3`).
-
-    Why each setting, with the measurements: docs/training.md ("Presets") and
-    experiments/results/train_ant/README.md.
-    """
-    if name not in PRESETS:
-        raise ValueError(f"unknown preset {name!r}; choose one of {PRESETS}")
-    base: dict[str, Any] = dict(env=env, algo=algo, preset=name)
-    if name == "paper":
-        base.update(num_envs=1, steps_per_iter=1000, total_env_steps=2_001_000,
-                    total_episodes=2001,
-                    eval_every=10, eval_episodes=1, checkpoint_every=50)
-        if not _is_point(env):
-            base.update(ant_integrator="RK4")
-    elif _is_point(env):
-        base.update(
+# PRESET_TABLE[preset][(env selector, learner selector)] = field overrides.
+#   env selector: "*" (every environment), a family of ENV_FAMILIES ("ant", "point") or an
+#     environment name ("u_maze", "point_medium", ...);
+#   learner selector: "*" (every learner), a class of LEARNER_CLASSES ("model_based",
+#     "model_free") or an algorithm of ALGOS.
+# `preset()` applies the entries that match, the least specific first: ordered by the env
+# selector ("*", family, name), then by the learner selector ("*", class, algorithm); then the
+# entries of FRONTIER_TABLE where the chain's frontier is on; then the caller's overrides.
+# An environment is in one family and a learner in one class, so no two matching entries share
+# a place in that order.
+PRESET_TABLE: dict[str, dict[tuple[str, str], dict[str, Any]]] = {
+    "paper": {
+        ("*", "*"): dict(num_envs=1, steps_per_iter=1000, total_env_steps=2_001_000,
+                         total_episodes=2001, eval_every=10, eval_episodes=1,
+                         checkpoint_every=50),
+        ("ant", "*"): dict(ant_integrator="RK4"),
+    },
+    "fast": {
+        ("point", "*"): dict(
             num_envs=16, steps_per_iter=100, total_env_steps=100_000,
             episode_length=500, warmup_episodes=8, gestation=5,
             max_options=8, max_pos_traj=50, max_neg=50,
@@ -466,44 +559,116 @@ def preset(name: str = "fast", env: str = "point_u_maze", algo: str = "mb_dscpp"
             replay_capacity=200_000, model_capacity=100_000,
             dyn_hidden=64, dyn_updates_per_step=0.02, dyn_pretrain_steps=300,
             dyn_batch_size=256, mpc_samples=128,
-            eval_every=5, eval_episodes=8, checkpoint_every=10,
-        )
-    else:
-        base.update(
+            eval_every=5, eval_episodes=8, checkpoint_every=10),
+        ("ant", "*"): dict(
             num_envs=128, steps_per_iter=50, total_env_steps=4_000_000, total_episodes=2001,
-            gestation=10 if env == "four_rooms" else 5,
-            td3_updates_per_step=0.25 if algo in MODEL_BASED_ALGOS else 1.0,
-            td3_batch_size=256 if algo in MODEL_BASED_ALGOS else 512,
-            td3_lr=1e-4 if algo in MODEL_BASED_ALGOS else -1.0,
-            replay_capacity=1_000_000, model_capacity=300_000,
-            dyn_updates_per_step=0.1, dyn_pretrain_steps=2000,
-            mpc_samples=2048 if env == "u_maze" else 4096,
+            gestation=5, replay_capacity=1_000_000, model_capacity=300_000,
+            dyn_updates_per_step=0.1, dyn_pretrain_steps=2000, mpc_samples=4096,
             mpc_dtype="bfloat16", max_options=24, td3_clip_targets=True,
             ant_integrator="RK4", td3_sample_block=32,
-            td3_action_l2=0.0 if algo in MODEL_BASED_ALGOS else 1.0,
-            td3_dtype="float32" if algo in MODEL_BASED_ALGOS else "bfloat16",
-            inband_eval_envs=32, eval_every=0, eval_episodes=100, checkpoint_every=25,
-        )
-        if algo in FRONTIER_CHAINS.get(env, ()) and overrides.get(
-                "diverse_starts", True):
-            base.update(FRONTIER_PRESET)
-            if env == "medium":
-                base.update(max_options=32)
-            if env == "medium" and algo == "mb_dscpp":
-                base.update(td3_updates_per_step=1.0)
-        if env == "medium" and algo not in MODEL_BASED_ALGOS:
-            base.update(MEDIUM_MODEL_FREE_TD3)
-    base.update(overrides)
-    return Config(**base)
+            inband_eval_envs=32, eval_every=0, eval_episodes=100, checkpoint_every=25),
+        ("ant", "model_based"): dict(td3_updates_per_step=0.25, td3_batch_size=256, td3_lr=1e-4,
+                                     td3_action_l2=0.0, td3_dtype="float32"),
+        ("ant", "model_free"): dict(td3_updates_per_step=1.0, td3_batch_size=512, td3_lr=-1.0,
+                                    td3_action_l2=1.0, td3_dtype="bfloat16"),
+        ("u_maze", "*"): dict(mpc_samples=2048),
+        ("four_rooms", "*"): dict(gestation=10),
+        ("medium", "model_free"): MEDIUM_MODEL_FREE_TD3,
+    },
+}
+# FRONTIER_TABLE[preset][(env selector, learner selector)]: the entries applied, in the same
+# order, where the chain's frontier is on: the preset has entries here, the environment and
+# learner are in FRONTIER_CHAINS, and the caller does not turn diverse starts off.
+FRONTIER_TABLE: dict[str, dict[tuple[str, str], dict[str, Any]]] = {
+    "fast": {
+        ("*", "*"): FRONTIER_PRESET,
+        ("medium", "*"): dict(max_options=32),
+        ("medium", "mb_dscpp"): dict(td3_updates_per_step=1.0),
+    },
+}
+
+
+def _env_rank(selector: str, env: str) -> int | None:
+    """Where an env selector that matches `env` goes in the merge order; None if it does not."""
+    if selector == "*":
+        return 0
+    if env in ENV_FAMILIES.get(selector, ()):
+        return 1
+    return 2 if selector == env else None
+
+
+def _learner_rank(selector: str, algo: str) -> int | None:
+    """Where a learner selector that matches `algo` goes in the merge order; None if it does not."""
+    if selector == "*":
+        return 0
+    if algo in LEARNER_CLASSES.get(selector, ()):
+        return 1
+    return 2 if selector == algo else None
+
+
+def matching_entries(table: dict[tuple[str, str], dict[str, Any]], env: str,
+                     algo: str) -> list[tuple[tuple[str, str], dict[str, Any]]]:
+    """The entries of one preset's table that apply to `env` and `algo`, in merge order."""
+    ranked = []
+    for (env_sel, learner_sel), entry in table.items():
+        e, a = _env_rank(env_sel, env), _learner_rank(learner_sel, algo)
+        if e is not None and a is not None:
+            ranked.append(((e, a), (env_sel, learner_sel), entry))
+    return [(key, entry) for _, key, entry in sorted(ranked, key=lambda r: r[0])]
+
+
+def frontier_chain(name: str, env: str, algo: str, diverse_starts: bool = True) -> bool:
+    """Whether preset `name` turns on the chain's frontier for `env` and `algo`."""
+    return name in FRONTIER_TABLE and algo in FRONTIER_CHAINS.get(env, ()) and bool(diverse_starts)
+
+
+def preset_fields(name: str, env: str, algo: str, diverse_starts: bool = True) -> dict[str, Any]:
+    """The fields preset `name` sets for `env` and `algo`, before the caller's overrides:
+    env, algo and preset, then the matching `PRESET_TABLE` entries and, where the chain's frontier
+    is on, the matching `FRONTIER_TABLE` entries, merged in that order (later entries win)."""
+    if name not in PRESETS:
+        raise ValueError(f"unknown preset {name!r}; choose one of {PRESETS}")
+    if env not in ENV_NAMES:
+        raise ValueError(f"unknown env name {env!r} for preset {name!r}; valid names: "
+                         f"{list(ENV_NAMES)}")
+    if algo not in ALGOS:
+        raise ValueError(f"unknown learner algo={algo!r} for preset {name!r}; choose one of "
+                         f"{list(ALGOS)}")
+    fields: dict[str, Any] = dict(env=env, algo=algo, preset=name)
+    for _, entry in matching_entries(PRESET_TABLE[name], env, algo):
+        fields.update(entry)
+    if frontier_chain(name, env, algo, diverse_starts):
+        for _, entry in matching_entries(FRONTIER_TABLE[name], env, algo):
+            fields.update(entry)
+    return fields
+
+
+def preset(name: str = "fast", env: str = "point_u_maze", algo: str = "mb_dscpp",
+           **overrides: Any) -> Config:
+    """Preset `name` (one of PRESETS) for environment `env` (one of ENV_NAMES) and learner `algo`
+    (one of ALGOS), with the field overrides applied last.
+
+    The preset's fields come from `PRESET_TABLE` and `FRONTIER_TABLE` (`preset_fields` says how
+    they merge); with diverse_starts=False among the overrides the chain's frontier stays off.
+    Unknown presets, environments, learners and fields raise a ValueError listing the known
+    ones, and so does a value of the wrong type for its field; as for any Config, `validate()`
+    checks the rest."""
+    fields = preset_fields(name, env, algo, overrides.get("diverse_starts", True))
+    bad = sorted(set(overrides) - set(_FIELD_TYPES))
+    if bad:
+        raise ValueError(f"unknown config field(s) {bad}; valid fields: {sorted(_FIELD_TYPES)}")
+    fields.update(overrides)
+    return Config(**fields)
 
 
 def parse_value(field_name: str, text: str) -> Any:
-    """Convert a command-line string to the type of Config field `field_name`."""
-    types = {f.name: f.type for f in dataclasses.fields(Config)}
-    if field_name not in types:
-        raise ValueError(f"unknown config field {field_name!r}; valid: {sorted(types)}")
-    t = types[field_name]
-    t = t if isinstance(t, str) else getattr(t, "__name__", str(t))
+    """Convert a command-line string (`--set field=text`) to the type of Config field
+    `field_name`; a ValueError names the field, what it takes and an example. (The values of
+    `CHOICES` fields are checked by `Config.validate`.)"""
+    if field_name not in _FIELD_TYPES:
+        raise ValueError(f"unknown config field {field_name!r}; valid: {sorted(_FIELD_TYPES)}")
+    t = _FIELD_TYPES[field_name]
+    example = _DEFAULTS[field_name]
     if t == "bool":
         if text.lower() in ("1", "true", "yes", "on"):
             return True
@@ -519,11 +684,7 @@ def parse_value(field_name: str, text: str) -> Any:
             return int(v)
         if t == "float":
             return float(text)
-    except ValueError:
-        example = getattr(Config(), field_name)
+    except (ValueError, OverflowError):
         raise ValueError(f"--set {field_name}={text!r}: {field_name} is {_TYPE_NAMES[t]}, e.g. "
                          f"--set {field_name}={example}") from None
     return text
-
-
-_TYPE_NAMES = {"int": "an integer", "float": "a number"}
