@@ -3,12 +3,12 @@
 `evaluate(state, key, num_episodes)` runs `num_episodes` episodes in parallel from the task start
 (or from given start positions) with deterministic option policies: no exploration noise, no
 random actions, no example collection, no learning. The TrainState is only read, never returned,
-so evaluation cannot leak into training. It reports the success rate, steps to the goal,
+so evaluation cannot leak into training. The episodes act through `dscpp_jax.acting`, the same
+functions as training's rollout, without exploration. It reports the success rate, steps to the goal,
 per-option success rates, the chain probability (paper eq. 3) and the trajectories for plots.
 """
 from __future__ import annotations
 
-import functools
 from typing import Any, Dict, NamedTuple, Optional
 
 import flax.struct
@@ -80,16 +80,22 @@ def evaluate_episodes_impl(state: T.TrainState, key, num_episodes: int, starts=N
          n_global, rec) = carry
         k_opt, k_act = jax.random.split(jax.random.fold_in(k_run, t))
         obs = es.obs
+
+        # CHOOSE OPTIONS AND SUBGOALS, ACT (deterministic unless `explore`)
         ex = A.choose_options(config, env, chain, dp_table, td3, ex, obs, k_opt, active,
-                               evaluation=True)
+                              evaluation=True)
         acts = A.policy_actions(config, td3, dyn, obs, ex.subgoal, k_act, explore, 0.0,
-                                 ex.option)
+                                ex.option)
+
+        # STEP (finished episodes stay where they ended) AND END OPTIONS
         nes = jax.vmap(env.step)(es, acts)
         nes = select_states(active, nes, es)
         ex = A.push_traj(ex, nes.obs[:, :2])
         done = (nes.done > 0) & active
         ended, osucc = A.option_end(config, env, chain, ex, nes.obs[:, :2], done)
         ended = ended & active
+
+        # COUNT AND RECORD (nothing is learned)
         onehot = jax.nn.one_hot(jnp.where(ended, ex.option, K), K + 1, dtype=jnp.int32)[:, :K]
         n_exec = n_exec + onehot.sum(0)
         n_succ = n_succ + (onehot * (osucc & ended)[:, None]).sum(0)
@@ -250,10 +256,10 @@ def make_policy(state: T.TrainState, deterministic: bool = True) -> Policy:
         ex = ex.replace(option=jnp.where(ended & started, A.NO_OPTION, ex.option))
         k_opt, k_act = jax.random.split(key)
         ex = A.choose_options(config, env, chain, dp_table, td3, ex, obs, k_opt,
-                               evaluation=deterministic)
+                              evaluation=deterministic)
         p = td3_random_prob(tcfg, state.counters.option_successes)
         acts = A.policy_actions(config, td3, dyn, obs, ex.subgoal, k_act, not deterministic, p,
-                                 ex.option)
+                                ex.option)
         ex = ex.replace(opt_steps=ex.opt_steps + 1)
         return ex, acts, ex.option
 
