@@ -4,8 +4,9 @@
 (or from given start positions) with deterministic option policies: no exploration noise, no
 random actions, no example collection, no learning. The TrainState is only read, never returned,
 so evaluation cannot leak into training. The episodes act through `dscpp_jax.acting`, the same
-functions as training's rollout, without exploration. It reports the success rate, steps to the goal,
-per-option success rates, the chain probability (paper eq. 3) and the trajectories for plots.
+functions as training's rollout, without exploration. It reports the success rate, steps to the
+goal, per-option success rates, the chain probability (paper eq. 3) and the trajectories for
+plots.
 """
 from __future__ import annotations
 
