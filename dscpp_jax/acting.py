@@ -262,7 +262,8 @@ def push_traj(ex: ExecState, xy) -> ExecState:
 
 
 def options_terminate(config: Config, chain, options, xy, goal):
-    """(B,) bool: each env's option terminates at xy (B, 2): beta_o (`options.option_terminates`)."""
+    """(B,) bool: each env's option terminates at xy (B, 2), inside beta_o
+    (`options.option_terminates`)."""
     o = jnp.clip(options, 0)
     return jax.vmap(lambda oo, p: option_terminates(chain, oo, p, goal))(o, xy)
 

@@ -43,13 +43,14 @@ import jax.numpy as jnp
 
 import envs
 from dscpp_jax import acting, learning
-from dscpp_jax.acting import (FRONTIER_KEY_SALT, GLOBAL_OPTION, GOAL_OPTION, NO_OPTION,  # noqa: F401
+# GLOBAL_OPTION, GOAL_OPTION, dyn_config and mpc_config are re-exported: part of trainer's API
+from dscpp_jax.acting import (FRONTIER_KEY_SALT, GLOBAL_OPTION, GOAL_OPTION, NO_OPTION,  # noqa
                               ExecState, InbandState, all_seeds, any_seed, choose_options,
                               diverse_starts, dyn_config, exec_init, frontier_pool, inband_act,
                               inband_metrics, inband_record, mpc_config, option_end,
                               policy_actions, push_traj, record_outcomes, td3_config)
 from dscpp_jax.config import Config
-from dscpp_jax.learning import td3_buffer, td3_sample_fn  # noqa: F401  (the trainer's API)
+from dscpp_jax.learning import td3_buffer, td3_sample_fn  # noqa: F401  (re-exported)
 from dscpp_jax.options import ChainConfig, chain_init
 from dscpp_jax.replay import Replay, TrajStep, replay_add, replay_init
 from dscpp_jax.subgoals import dp_table_init
