@@ -209,7 +209,10 @@ def _apply_member(cfg, obs_dim, params, x):
 
 
 def dynamics_loss(cfg: DynamicsConfig, params, norm: Normaliser, obs, act, next_obs, weight=None):
-    """MSE between the member's output and the standardised state change (one member's params)."""
+    """The dynamics model's loss (one member's params): the mean squared error between the
+    member's output and the standardised state change, the model ``s_{t+1} = s_t + f_xi(s_t, a_t)``
+    of Nagabandi et al. 2018 that the paper learns for MPC (eq. 1 and 2; appendix, "Deep
+    Model-based RL"). ``weight`` (B,): optional per-row weights (a weighted mean)."""
     obs_dim = obs.shape[-1]
     x = _standardise_inputs(norm, obs, act)
     target = ((next_obs - obs) - norm.delta_mean) / norm.delta_std

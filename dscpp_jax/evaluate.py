@@ -3,12 +3,13 @@
 `evaluate(state, key, num_episodes)` runs `num_episodes` episodes in parallel from the task start
 (or from given start positions) with deterministic option policies: no exploration noise, no
 random actions, no example collection, no learning. The TrainState is only read, never returned,
-so evaluation cannot leak into training. It reports the success rate, steps to the goal,
-per-option success rates, the chain probability (paper eq. 3) and the trajectories for plots.
+so evaluation cannot leak into training. The episodes act through `dscpp_jax.acting`, the same
+functions as training's rollout, without exploration. It reports the success rate, steps to the
+goal, per-option success rates, the chain probability (paper eq. 3) and the trajectories for
+plots.
 """
 from __future__ import annotations
 
-import functools
 from typing import Any, Dict, NamedTuple, Optional
 
 import flax.struct
@@ -16,8 +17,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from dscpp_jax import acting as A
 from dscpp_jax import trainer as T
 from dscpp_jax.config import Config
+from dscpp_jax.td3 import td3_random_prob
 from envs.goal_env import select_states
 
 
@@ -41,9 +44,13 @@ class EvalResult:
     qpos_seq: Optional[jax.Array] = None     # (L + 1, N, nq) MuJoCo qpos (MJX envs only)
 
 
-def _eval_impl(state: T.TrainState, key, num_episodes: int, starts=None, record: bool = False,
-               num_steps: Optional[int] = None, explore: bool = False) -> EvalResult:
-    """`record` (static) also keeps the observations, subgoals and (MJX envs) qpos of every step;
+def evaluate_episodes_impl(state: T.TrainState, key, num_episodes: int, starts=None,
+                           record: bool = False, num_steps: Optional[int] = None,
+                           explore: bool = False) -> EvalResult:
+    """Un-jitted `evaluate_episodes`: `num_episodes` episodes of the deterministic policy (the
+    acting of `dscpp_jax.acting`, as in training, without exploration or example collection).
+
+    `record` (static) also keeps the observations, subgoals and (MJX envs) qpos of every step;
     off, the program is the same as without it. `num_steps` (static) caps the episodes at fewer
     steps than `config.episode_length` (an episode cut short counts as not successful).
     `explore` (static) acts with training's action noise instead of deterministically: the
@@ -62,7 +69,7 @@ def _eval_impl(state: T.TrainState, key, num_episodes: int, starts=None, record:
     else:
         es = jax.vmap(env.reset_at)(ks, jnp.asarray(starts, jnp.float32))
     goal = jnp.asarray(env.goal, jnp.float32)
-    ex = T.exec_init(config, es.obs, goal)
+    ex = A.exec_init(config, es.obs, goal)
     chain, td3, dyn, dp_table = state.chain, state.td3, state.dyn, state.dp_table
 
     def cond(carry):
@@ -74,22 +81,28 @@ def _eval_impl(state: T.TrainState, key, num_episodes: int, starts=None, record:
          n_global, rec) = carry
         k_opt, k_act = jax.random.split(jax.random.fold_in(k_run, t))
         obs = es.obs
-        ex = T._choose_options(config, env, chain, dp_table, td3, ex, obs, k_opt, active,
-                               evaluation=True)
-        acts = T._policy_actions(config, td3, dyn, obs, ex.subgoal, k_act, explore, 0.0,
-                                 ex.option)
+
+        # CHOOSE OPTIONS AND SUBGOALS, ACT (deterministic unless `explore`)
+        ex = A.choose_options(config, env, chain, dp_table, td3, ex, obs, k_opt, active,
+                              evaluation=True)
+        acts = A.policy_actions(config, td3, dyn, obs, ex.subgoal, k_act, explore, 0.0,
+                                ex.option)
+
+        # STEP (finished episodes stay where they ended) AND END OPTIONS
         nes = jax.vmap(env.step)(es, acts)
         nes = select_states(active, nes, es)
-        ex = T._push_traj(ex, nes.obs[:, :2])
+        ex = A.push_traj(ex, nes.obs[:, :2])
         done = (nes.done > 0) & active
-        ended, osucc = T._option_end(config, env, chain, ex, nes.obs[:, :2], done)
+        ended, osucc = A.option_end(config, env, chain, ex, nes.obs[:, :2], done)
         ended = ended & active
+
+        # COUNT AND RECORD (nothing is learned)
         onehot = jax.nn.one_hot(jnp.where(ended, ex.option, K), K + 1, dtype=jnp.int32)[:, :K]
         n_exec = n_exec + onehot.sum(0)
         n_succ = n_succ + (onehot * (osucc & ended)[:, None]).sum(0)
         n_fail = n_fail + (ended & ~osucc & (ex.option >= 0)).astype(jnp.int32)
         n_global = n_global + (active & (ex.option == 0)).astype(jnp.int32)
-        opt_buf = opt_buf.at[t].set(jnp.where(active, ex.option, T.NO_OPTION))
+        opt_buf = opt_buf.at[t].set(jnp.where(active, ex.option, A.NO_OPTION))
         act_buf = act_buf.at[t].set(active)
         xy_buf = xy_buf.at[t + 1].set(nes.obs[:, :2])
         if record:
@@ -97,7 +110,7 @@ def _eval_impl(state: T.TrainState, key, num_episodes: int, starts=None, record:
                        subgoal=rec["subgoal"].at[t].set(ex.subgoal))
             if "qpos" in rec:
                 rec["qpos"] = rec["qpos"].at[t + 1].set(nes.pipeline_state.qpos)
-        ex = ex.replace(option=jnp.where(ended, T.NO_OPTION, ex.option))
+        ex = ex.replace(option=jnp.where(ended, A.NO_OPTION, ex.option))
         success = success | (done & (nes.info["success"] > 0))
         steps = steps + active.astype(jnp.int32)
         active = active & ~done
@@ -107,7 +120,7 @@ def _eval_impl(state: T.TrainState, key, num_episodes: int, starts=None, record:
     z = jnp.zeros((K,), jnp.int32)
     xy0 = jnp.broadcast_to(es.obs[None, :, :2], (L + 1, N, 2))
     carry0 = (jnp.zeros((), jnp.int32), es, ex, jnp.ones((N,), bool), jnp.zeros((N,), bool),
-              jnp.zeros((N,), jnp.int32), z, z, xy0, jnp.full((L, N), T.NO_OPTION, jnp.int32),
+              jnp.zeros((N,), jnp.int32), z, z, xy0, jnp.full((L, N), A.NO_OPTION, jnp.int32),
               jnp.zeros((L, N), bool), jnp.zeros((N,), jnp.int32), jnp.zeros((N,), jnp.int32),
               _record_init(es, L) if record else {})
     carry = jax.lax.while_loop(cond, body, carry0)
@@ -116,7 +129,7 @@ def _eval_impl(state: T.TrainState, key, num_episodes: int, starts=None, record:
     xy = _freeze_after_end(xy, steps)
     rec = {k: (v if k == "subgoal" else _freeze_after_end(v, steps)) for k, v in rec.items()}
     if config.hierarchical:
-        cm = T._chain_metrics(config, chain)
+        cm = A.chain_metrics(config, chain)
         cp, nopt = cm["options/chain_probability"], cm["options/num_options"]
     else:
         cp, nopt = jnp.asarray(jnp.nan), jnp.asarray(1.0)
@@ -150,7 +163,7 @@ def _freeze_after_end(seq, steps):
     return jnp.where(after, last, seq)
 
 
-evaluate_episodes = jax.jit(_eval_impl, static_argnames=("num_episodes", "record", "num_steps",
+evaluate_episodes = jax.jit(evaluate_episodes_impl, static_argnames=("num_episodes", "record", "num_steps",
                                                          "explore"))
 """Jitted `evaluate_episodes(state, key, num_episodes, starts=None, record=False, num_steps=None,
 explore=False) -> EvalResult` (`record`: also the per-step observations, subgoals and qpos, for
@@ -159,7 +172,6 @@ videos; `explore`: with training's action noise)."""
 
 def summarize(result: EvalResult, prefix: str = "eval/") -> Dict[str, float]:
     """Host-side scalar summary of an EvalResult (namespaced for logs)."""
-    import numpy as np
     succ = np.asarray(result.success)
     steps = np.asarray(result.steps)
     on_back = np.asarray(result.upright) < 0
@@ -184,7 +196,7 @@ def summarize(result: EvalResult, prefix: str = "eval/") -> Dict[str, float]:
 def evaluate(state: T.TrainState, key: Optional[jax.Array] = None, num_episodes: Optional[int] = None,
              starts=None, explore: bool = False) -> tuple[Dict[str, float], EvalResult]:
     """Evaluate from the task start (or `starts`, (N, 2)); returns (scalar metrics, EvalResult).
-    `explore`: act with training's action noise (see `_eval_impl`), a diagnostic; the
+    `explore`: act with training's action noise (see `evaluate_episodes_impl`), a diagnostic; the
     success figures of the library are always deterministic.
 
     The default key depends only on the iteration, so evaluation never consumes the training
@@ -232,23 +244,23 @@ def make_policy(state: T.TrainState, deterministic: bool = True) -> Policy:
     env = T.make_env(config)
     chain, td3, dyn, dp_table = state.chain, state.td3, state.dyn, state.dp_table
     goal = jnp.asarray(env.goal, jnp.float32)
-    tcfg = T.td3_config(config)
+    tcfg = A.td3_config(config)
 
     def init(obs):
-        return T.exec_init(config, obs, goal)
+        return A.exec_init(config, obs, goal)
 
     def step(ex, obs, key):
         xy = obs[:, :2]
         # options that reached their subgoal region or timed out at `obs` end before acting
-        ended, _ = T._option_end(config, env, chain, ex, xy, jnp.zeros(xy.shape[:1]))
+        ended, _ = A.option_end(config, env, chain, ex, xy, jnp.zeros(xy.shape[:1]))
         started = ex.opt_steps > 0
-        ex = ex.replace(option=jnp.where(ended & started, T.NO_OPTION, ex.option))
+        ex = ex.replace(option=jnp.where(ended & started, A.NO_OPTION, ex.option))
         k_opt, k_act = jax.random.split(key)
-        ex = T._choose_options(config, env, chain, dp_table, td3, ex, obs, k_opt,
-                               evaluation=deterministic)
-        p = T.td3_random_prob(tcfg, state.counters.option_successes)
-        acts = T._policy_actions(config, td3, dyn, obs, ex.subgoal, k_act, not deterministic, p,
-                                 ex.option)
+        ex = A.choose_options(config, env, chain, dp_table, td3, ex, obs, k_opt,
+                              evaluation=deterministic)
+        p = td3_random_prob(tcfg, state.counters.option_successes)
+        acts = A.policy_actions(config, td3, dyn, obs, ex.subgoal, k_act, not deterministic, p,
+                                ex.option)
         ex = ex.replace(opt_steps=ex.opt_steps + 1)
         return ex, acts, ex.option
 

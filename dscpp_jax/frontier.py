@@ -25,14 +25,15 @@ The probe is a Monte Carlo estimate from candidate states drawn by the env's div
 frontier of row ``k`` when no mature option's initiation set (optimistic OR pessimistic) holds it
 and it lies within ``radius`` of one of row ``k``'s positive states inside ``k``'s pessimistic region
 (the states its children draw subgoals from). Pure and shape-stable: candidates (M, 2) in, (K, M)
-out; vmap over seeds.
+out; vmap over seeds. :func:`grow_chain` is ``options.grow_chain`` with the frontier's parents.
 """
 from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
 
-from dscpp_jax.options import GESTATION, GOAL, MATURE, Chain, _classify_all
+from dscpp_jax.options import GESTATION, GOAL, MATURE, Chain, add_option, check_start, classify_all, \
+    clear_row, mature_options
 
 
 def frontier_probe(chain: Chain, cand_xy, radius: float, inner: float = 0.0) -> jax.Array:
@@ -46,7 +47,7 @@ def frontier_probe(chain: Chain, cand_xy, radius: float, inner: float = 0.0) -> 
         raise ValueError(f"frontier_probe: need 0 <= inner < radius, got inner={inner}, "
                          f"radius={radius}")
     mature = chain.status == MATURE
-    ini = jax.vmap(lambda p: _classify_all(chain, p)[0])(cand)            # (M, K)
+    ini = jax.vmap(lambda p: classify_all(chain, p)[0])(cand)            # (M, K)
     uncovered = ~jnp.any(ini & mature[None, :], axis=1)                     # (M,)
     K, P, L = chain.pos_xy.shape[:3]
     r2, i2 = float(radius) ** 2, float(inner) ** 2
@@ -89,3 +90,27 @@ def frontier_parent(chain: Chain, is_open: jax.Array) -> jax.Array:
     newest = jnp.max(jnp.where(mature, idx, -1))
     newest_open = jnp.max(jnp.where(mature & is_open, idx, -1))
     return jnp.where(newest_open >= 0, newest_open, newest).astype(jnp.int32)
+
+
+def grow_chain(chain: Chain, start_xy, is_open: jax.Array) -> Chain:
+    """``options.grow_chain`` with the frontier's parents (call after ``options.refit``).
+
+    ``is_open``: (K,) bool, which rows have an open frontier (:func:`open_rows`), measured on the
+    chain after its maturity step (``options.mature_options``). Options in gestation with enough
+    successes become mature; a link in gestation whose parent's frontier has closed is
+    re-targeted to the newest mature option with an open frontier, its examples cleared
+    (``options.clear_row``); then, as in the paper, a new option is created while no mature
+    option's initiation set holds ``start_xy``, its parent the newest mature option with an open
+    frontier (the newest mature one when none is open; ``options.add_option``)."""
+    start_xy = check_start(start_xy)
+    chain = mature_options(chain)
+    is_open = jnp.asarray(is_open, bool)
+    newest = frontier_parent(chain, is_open)
+    g = gestation_row(chain)
+    gc = jnp.clip(g, 0)
+    p = chain.parent[gc]
+    switch = ((g >= 0) & (p >= 0) & ~is_open[jnp.clip(p, 0)] & (newest >= 0)
+              & is_open[jnp.clip(newest, 0)] & (newest != p))
+    chain = clear_row(chain, g, switch)
+    chain = chain.replace(parent=chain.parent.at[gc].set(jnp.where(switch, newest, p)))
+    return add_option(chain, newest, start_xy)

@@ -162,7 +162,7 @@ def _fit(pos_xy, pos_mask, neg_xy, neg_mask, prev: InitiationClassifiers, cfg: I
          inner) -> InitiationClassifiers:
     pos_mask = pos_mask.astype(bool)
     neg_mask = neg_mask.astype(bool)
-    X = svm._clean(jnp.concatenate([pos_xy, neg_xy], axis=0), jnp.concatenate([pos_mask, neg_mask]))
+    X = svm.clean_points(jnp.concatenate([pos_xy, neg_xy], axis=0), jnp.concatenate([pos_mask, neg_mask]))
     labels = jnp.concatenate([jnp.ones_like(pos_mask, jnp.int32), jnp.zeros_like(neg_mask, jnp.int32)])
     pos_slots = jnp.concatenate([pos_mask, jnp.zeros_like(neg_mask)])
     all_slots = jnp.concatenate([pos_mask, neg_mask])
@@ -170,19 +170,19 @@ def _fit(pos_xy, pos_mask, neg_xy, neg_mask, prev: InitiationClassifiers, cfg: I
     has_neg = jnp.any(neg_mask)
     two_class = has_pos & has_neg
     balanced = jnp.sum(neg_mask) >= cfg.balanced_min_negatives
-    max_iter = svm._check_max_iter(cfg.max_iter, X.shape[0])
+    max_iter = svm.check_max_iter(cfg.max_iter, X.shape[0])
     gamma = jnp.float32(cfg.gamma)
     tol = jnp.float32(cfg.tol)
 
     # first model: SVC with negatives, else one-class on the positives (one SMO run either way)
     nu_first = cfg.nu_optimistic if cfg.variant == "dual" else cfg.nu_single
-    svc = svm._svc_problem(labels, all_slots, jnp.float32(cfg.C), balanced)
+    svc = svm.svc_problem(labels, all_slots, jnp.float32(cfg.C), balanced)
     n = X.shape[0]
-    occ = svm._one_class_problem(X, pos_slots, jnp.float32(nu_first), gamma,
+    occ = svm.one_class_problem(X, pos_slots, jnp.float32(nu_first), gamma,
                                  svm.one_class_start_bound(nu_first, n))
     problem = tuple(jnp.where(two_class, a, b) for a, b in zip(svc, occ))
     first_mask = jnp.where(two_class, all_slots, pos_slots)
-    first, f_train = svm._fit_problem(X, first_mask, problem, ~two_class, gamma, tol, max_iter, inner)
+    first, f_train = svm.fit_problem(X, first_mask, problem, ~two_class, gamma, tol, max_iter, inner)
     opt = _select(has_pos, first, prev.optimistic)
     opt_fitted = has_pos | prev.optimistic_fitted
 
@@ -196,37 +196,40 @@ def _fit(pos_xy, pos_mask, neg_xy, neg_mask, prev: InitiationClassifiers, cfg: I
     candidates = all_slots if cfg.pessimistic_examples == "all" else pos_slots
     pes_slots = jnp.where(two_class, candidates & called_pos, pos_slots)
     any_pes = jnp.any(pes_slots)
-    pes_problem = svm._one_class_problem(X, pes_slots, jnp.float32(cfg.nu_pessimistic), gamma,
+    pes_problem = svm.one_class_problem(X, pes_slots, jnp.float32(cfg.nu_pessimistic), gamma,
                                          svm.one_class_start_bound(cfg.nu_pessimistic, n))
-    pes_new, _ = svm._fit_problem(X, pes_slots, pes_problem, True, gamma, tol, max_iter, inner)
+    pes_new, _ = svm.fit_problem(X, pes_slots, pes_problem, True, gamma, tol, max_iter, inner)
     pes = _select(any_pes, pes_new, prev.pessimistic)
     return InitiationClassifiers(optimistic=opt, pessimistic=pes, optimistic_fitted=opt_fitted,
                                  pessimistic_fitted=any_pes | prev.pessimistic_fitted)
 
 
 def fit_initiation(pos_xy, pos_mask, neg_xy, neg_mask, cfg: InitiationConfig = InitiationConfig(),
-                   prev: InitiationClassifiers | None = None, *, _inner=None
+                   prev: InitiationClassifiers | None = None, *, solver=None, _inner=None
                    ) -> InitiationClassifiers:
     """Refit one option's classifiers.
 
     pos_xy (P, d), pos_mask (P,), neg_xy (M, d), neg_mask (M,): padded examples + validity.
     prev: the option's current classifiers (kept where a model cannot be refit: no positives, or
     no positive the SVC calls positive); None = unfitted. Jit-able; no retrace across counts.
+    solver: the SMO solver (``svm.resolve_inner``'s argument; None: the platform's default);
+    ``_inner`` is its former name.
     """
     _check_inputs(pos_xy, pos_mask, neg_xy, neg_mask)
     if prev is None:
         prev = empty_initiation(pos_xy.shape[0], neg_xy.shape[0], pos_xy.shape[1], cfg.gamma)
-    return _fit(pos_xy, pos_mask, neg_xy, neg_mask, prev, cfg=cfg, inner=svm._resolve_inner(_inner))
+    return _fit(pos_xy, pos_mask, neg_xy, neg_mask, prev, cfg=cfg, inner=svm.resolve_inner(_inner if solver is None else solver))
 
 
 def fit_initiation_batch(pos_xy, pos_mask, neg_xy, neg_mask, cfg: InitiationConfig = InitiationConfig(),
                          prev: InitiationClassifiers | None = None, dirty=None, *,
-                         _inner=None) -> InitiationClassifiers:
+                         solver=None, _inner=None) -> InitiationClassifiers:
     """Refit a batch of K options at once (vmapped SMO on accelerators, see ``BATCH_MODE``).
 
     pos_xy (K, P, d), pos_mask (K, P), neg_xy (K, M, d), neg_mask (K, M); prev: batched
     classifiers (leading K) or None; dirty: (K,) bool, options to refit (others keep ``prev``
-    and cost no SMO steps). Returns batched InitiationClassifiers.
+    and cost no SMO steps); solver: as in ``fit_initiation``. Returns batched
+    InitiationClassifiers.
     """
     if getattr(pos_xy, "ndim", None) != 3 or getattr(neg_xy, "ndim", None) != 3:
         raise ValueError(f"batched pos_xy / neg_xy must be (K, n, d), got {getattr(pos_xy, 'shape', None)} "
@@ -251,7 +254,7 @@ def fit_initiation_batch(pos_xy, pos_mask, neg_xy, neg_mask, cfg: InitiationConf
 
     mode = BATCH_MODE.get(jax.default_backend(), BATCH_MODE["default"])
     return _fit_batch(pos_xy, pos_mask, neg_xy, neg_mask, prev, dirty, cfg=cfg,
-                      inner=svm._resolve_inner(_inner), mode=mode)
+                      inner=svm.resolve_inner(_inner if solver is None else solver), mode=mode)
 
 
 @functools.partial(jax.jit, static_argnames=("cfg", "inner", "mode"))

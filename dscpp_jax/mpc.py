@@ -1,4 +1,4 @@
-"""Random-shooting model predictive control with a terminal value (paper eq. 2).
+"""Random-shooting model predictive control with a terminal value (paper eq. 2; eq. 1 without it).
 
 For each environment: draw M action sequences of length K uniformly in [-1, 1]^A, roll each through
 the learned dynamics, and score it with
@@ -42,8 +42,11 @@ import flax.struct
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.experimental import pallas as pl
+from jax.experimental.pallas import triton as plgpu
 
 from dscpp_jax.dynamics import DynamicsConfig, DynamicsState, FoldedDynamics, dynamics_fold
+from dscpp_jax.networks import Actor, TwinCritic, actor_action_dim
 
 __all__ = [
     "MPCConfig",
@@ -165,7 +168,10 @@ def _terminal(mpc_cfg: MPCConfig, step_cost, final_at_goal, final_values, valid=
 
 
 def mpc_cost(mpc_cfg: MPCConfig, pred_xy, goal, final_values=None):
-    """Eq. 2 cost of each sequence from its predicted positions.
+    """The negated objective of eq. 2 for each sequence, from its predicted positions:
+    ``sum_{j<K} gamma^j c_j - gamma^K V(s_K | g)``, with ``c_j = -R(s_{j+1}, g)`` the 0/1 step
+    cost of being outside the goal's tolerance; without the value term (``use_value=False`` or no
+    ``final_values``) that of eq. 1, the finite-horizon objective.
 
     pred_xy (..., M, K, 2): xy of the predicted states s_1..s_K; goal (..., 2); final_values
     (..., M) = V(s_K, g) or None (no terminal term). Returns (..., M) costs (lower is better).
@@ -282,8 +288,6 @@ def _mlp_hidden(params) -> tuple:
 
 def value_net_fn(net: ValueNet) -> Callable:
     """value_fn(states (..., obs), goal (2,) or (..., 2)) -> (...) computing exactly td3_value (XLA)."""
-    from dscpp_jax.networks import Actor, TwinCritic, actor_action_dim
-
     actor = Actor(action_dim=actor_action_dim(net.actor_params), hidden=_mlp_hidden(net.actor_params["params"]),
                   output_normalisation=net.output_normalisation, max_action=net.max_action)
     critic = TwinCritic(hidden=_mlp_hidden(net.critic_params["params"]["heads"]))
@@ -426,7 +430,6 @@ def _rollout_pallas(mpc_cfg: MPCConfig, dyn_cfg: DynamicsConfig, fd: FoldedDynam
     states (if want_final); with value_net also "value" (B, Mp) = min(Q1, Q2)(s_K, g, pi(s_K, g)) and
     "at_goal" (B, Mp) (bool) from the final states, computed inside the kernel.
     """
-    from jax.experimental import pallas as pl
 
     B, obs_dim = obs.shape
     E = fd.w_s.shape[0]
@@ -642,7 +645,6 @@ def _rollout_pallas(mpc_cfg: MPCConfig, dyn_cfg: DynamicsConfig, fd: FoldedDynam
         flops += 2 * B * Mp * ((SP + AP) * HV + HV * HV + n_heads * (SP * HV + AP * HV + HV * HV + HV))
     kwargs = {}
     if not interpret:
-        from jax.experimental.pallas import triton as plgpu
         kwargs["compiler_params"] = plgpu.CompilerParams(num_warps=mpc_cfg.num_warps,
                                                          num_stages=mpc_cfg.num_stages)
     outs = pl.pallas_call(

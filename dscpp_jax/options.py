@@ -50,6 +50,8 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from dscpp_jax import initiation, svm
+
 FREE = 0
 GESTATION = 1
 MATURE = 2
@@ -150,15 +152,9 @@ class Chain:
 # Classifier adapter (the only place that touches dscpp_jax.initiation)
 # ------------------------------------------------------------------------------------------------
 
-def _initiation():
-    from . import initiation  # imported lazily: a light import for users of the queries only
-
-    return initiation
-
-
 def initiation_config(cfg: ChainConfig):
     """The :class:`dscpp_jax.initiation.InitiationConfig` matching a chain config."""
-    return _initiation().InitiationConfig(
+    return initiation.InitiationConfig(
         variant=cfg.variant, gamma=cfg.svm_gamma, C=cfg.svm_C, nu_pessimistic=cfg.nu_pessimistic,
         nu_optimistic=cfg.nu_optimistic, nu_single=cfg.nu_pessimistic,
         balanced_min_negatives=cfg.balanced_min_neg, tol=cfg.svm_tol, max_iter=cfg.svm_max_iter)
@@ -166,7 +162,7 @@ def initiation_config(cfg: ChainConfig):
 
 def _empty_classifiers(cfg: ChainConfig):
     """Unfitted classifiers over P * L positive + N negative slots, stacked over K rows."""
-    one = _initiation().empty_initiation(cfg.max_pos_traj * cfg.traj_len, cfg.max_neg, 2,
+    one = initiation.empty_initiation(cfg.max_pos_traj * cfg.traj_len, cfg.max_neg, 2,
                                          cfg.svm_gamma)
     return jax.tree_util.tree_map(
         lambda x: jnp.broadcast_to(x, (cfg.max_options,) + x.shape), one)
@@ -209,27 +205,26 @@ def _near(a, b, tol):
     return jnp.sum((a - b) ** 2, axis=-1) <= tol * tol
 
 
-def _classify_all(chain: Chain, xy):
+def classify_all(chain: Chain, xy):
     """(K,) initiation and (K,) pessimistic decisions of every row's classifiers at xy (2,),
     False for rows without a fitted classifier."""
-    ini = _initiation()
     xy = jnp.asarray(xy, jnp.float32)
-    opt = jax.vmap(lambda c: ini.optimistic_contains(c, xy))(chain.clf)
-    pess = jax.vmap(lambda c: ini.pessimistic_contains(c, xy))(chain.clf)
+    opt = jax.vmap(lambda c: initiation.optimistic_contains(c, xy))(chain.clf)
+    pess = jax.vmap(lambda c: initiation.pessimistic_contains(c, xy))(chain.clf)
     return (opt | pess) & chain.fitted, pess & chain.fitted
 
 
 def can_initiate(chain: Chain, xy) -> jax.Array:
     """(K,) bool: which options may start at xy (2,). The global option and options in gestation
     always; mature options where optimistic OR pessimistic holds; free rows never."""
-    ini, _ = _classify_all(chain, xy)
+    ini, _ = classify_all(chain, xy)
     return (chain.status == ALWAYS) | (chain.status == GESTATION) | ((chain.status == MATURE) & ini)
 
 
 def in_termination_region(chain: Chain, xy, task_goal=None) -> jax.Array:
     """(K,) bool: option_terminates for every row at xy (2,) (one classifier pass)."""
     goal = chain.goal_xy if task_goal is None else jnp.asarray(task_goal, jnp.float32)
-    _, pess = _classify_all(chain, xy)
+    _, pess = classify_all(chain, xy)
     at_goal = _near(jnp.asarray(xy, jnp.float32), goal, chain.cfg.goal_tolerance)
     idx = jnp.arange(chain.cfg.max_options)
     par = jnp.clip(chain.parent, 0)
@@ -246,7 +241,7 @@ def option_terminates(chain: Chain, o, xy, task_goal=None) -> jax.Array:
     o = jnp.asarray(o, jnp.int32)
     p = chain.parent[o]
     pc = jnp.clip(p, 0)
-    in_parent = _initiation().pessimistic_contains(_row(chain.clf, pc), xy) & chain.fitted[pc] & (p >= 0)
+    in_parent = initiation.pessimistic_contains(_row(chain.clf, pc), xy) & chain.fitted[pc] & (p >= 0)
     at_goal = _near(xy, goal, chain.cfg.goal_tolerance)
     return jnp.where(o <= GOAL, at_goal, in_parent)
 
@@ -273,7 +268,7 @@ def select_option(chain: Chain, xy, at_subgoal=None, prefer_pessimistic: bool = 
     during evaluation). Off by default (the paper's walk). Returns int32.
     """
     K = chain.cfg.max_options
-    ini, pess = _classify_all(chain, xy)
+    ini, pess = classify_all(chain, xy)
     init = (chain.status == GESTATION) | ((chain.status == MATURE) & ini)
     if at_subgoal is None:
         goal = chain.goal_xy
@@ -422,7 +417,7 @@ def refresh_subgoal_cache(chain: Chain, mask=None) -> Chain:
     r = cfg.subgoal_tolerance
     shifts = jnp.array([[0.0, 0.0], [r, 0.0], [-r, 0.0], [0.0, r], [0.0, -r]], jnp.float32)
     pts = chain.pos_xy[:, :, :, None, :] + shifts                            # (K, P, L, 5, 2)
-    pess = _initiation().pessimistic_contains
+    pess = initiation.pessimistic_contains
     inside = jax.vmap(pess)(chain.clf, pts.reshape(K, P * L * 5, 2)).reshape(K, P, L, 5)
     inside = inside & chain.pos_mask[..., None] & chain.fitted[:, None, None, None]
     pess_ok = jnp.where(mask[:, None, None], inside[..., 0], chain.pess_ok)
@@ -446,13 +441,12 @@ def refit(chain: Chain, mask=None, seed_axis=None) -> Chain:
     has_pos = chain.pos_mask[:, :, 0].any(axis=1)
     do = mask & chain.active & (jnp.arange(K) != GLOBAL) & has_pos
 
-    from dscpp_jax import svm
-    solver = svm._resolve_inner(None, backend=cfg.svm_backend)
+    solver = svm.resolve_inner(None, backend=cfg.svm_backend)
 
     def fit(c):
-        clf = _initiation().fit_initiation_batch(
+        clf = initiation.fit_initiation_batch(
             c.pos_xy.reshape(K, P * L, 2), c.pos_mask.reshape(K, P * L), c.neg_xy, c.neg_mask,
-            initiation_config(cfg), prev=c.clf, dirty=do, _inner=solver)
+            initiation_config(cfg), prev=c.clf, dirty=do, solver=solver)
         return refresh_subgoal_cache(c.replace(clf=clf, fitted=_fitted_flags(clf)), do)
 
     # nothing to fit (most iterations late in training): skip the set-up work entirely
@@ -472,7 +466,7 @@ def refit(chain: Chain, mask=None, seed_axis=None) -> Chain:
 
 def start_covered(chain: Chain, start_xy) -> jax.Array:
     """bool: some mature option's initiation set (optimistic OR pessimistic) holds start_xy."""
-    ini, _ = _classify_all(chain, start_xy)
+    ini, _ = classify_all(chain, start_xy)
     return jnp.any(ini & (chain.status == MATURE))
 
 
@@ -503,52 +497,50 @@ def mature_options(chain: Chain) -> Chain:
     return chain.replace(status=jnp.where(matured, MATURE, chain.status))
 
 
-def grow_chain(chain: Chain, start_xy, is_open=None) -> Chain:
-    """Maturity, then chain growth (call after :func:`refit`, once per learning iteration).
-
-    1. Options in gestation with at least ``gestation`` successes become mature.
-    2. If no option is in gestation, the newest mature option has fitted classifiers, and no mature
-       option's initiation set holds ``start_xy`` (pass the env's start state, ``env.start``), a
-       new option is created in the next free row, in gestation, whose parent is the newest mature
-       option. When the table is full, ``capacity_hit`` is set instead (sticky).
-
-    ``is_open`` (optional; beyond the paper, :mod:`dscpp_jax.frontier`): (K,) bool, which rows
-    have an open frontier, measured on the chain after step 1 (:func:`mature_options`). A new
-    option's parent is then the newest mature option with an open frontier (the newest mature one
-    when none is open), and a link in gestation whose parent's frontier has closed is re-targeted
-    there, its examples cleared (:func:`clear_row`).
-    """
-    cfg = chain.cfg
-    K = cfg.max_options
-    start_xy = jnp.asarray(start_xy, jnp.float32)
-    if start_xy.shape != (2,):
-        raise ValueError(f"grow_chain: start_xy must have shape (2,), got {start_xy.shape}")
-    idx = jnp.arange(K)
-    chain = mature_options(chain)
+def add_option(chain: Chain, parent, start_xy) -> Chain:
+    """Algorithm 3, lines 7-9: if no option is in gestation, row ``parent`` (int32; -1: none) is
+    mature with fitted classifiers, and no mature option's initiation set holds ``start_xy``, a
+    new option is created in the next free row, in gestation, targeting ``parent``. When the table
+    is full, ``capacity_hit`` is set instead (sticky)."""
+    K = chain.cfg.max_options
     status = chain.status
-    newest = jnp.max(jnp.where(status == MATURE, idx, -1))
-    if is_open is not None:
-        from dscpp_jax import frontier
-        is_open = jnp.asarray(is_open, bool)
-        newest = frontier.frontier_parent(chain, is_open)
-        g = frontier.gestation_row(chain)
-        gc = jnp.clip(g, 0)
-        p = chain.parent[gc]
-        switch = ((g >= 0) & (p >= 0) & ~is_open[jnp.clip(p, 0)] & (newest >= 0)
-                  & is_open[jnp.clip(newest, 0)] & (newest != p))
-        chain = clear_row(chain, g, switch)
-        chain = chain.replace(parent=chain.parent.at[gc].set(jnp.where(switch, newest, p)))
-    newest_c = jnp.clip(newest, 0)
-    want = ((~jnp.any(status == GESTATION)) & (newest >= 0) & chain.fitted[newest_c]
+    parent_c = jnp.clip(parent, 0)
+    want = ((~jnp.any(status == GESTATION)) & (parent >= 0) & chain.fitted[parent_c]
             & ~start_covered(chain, start_xy))
     n = chain.num_options
     room = n < K
     create = want & room
     slot = jnp.where(create, n, K)                      # K: out of bounds -> no write
     status = status.at[slot].set(GESTATION, mode="drop")
-    parent = chain.parent.at[slot].set(newest, mode="drop")
-    return chain.replace(status=status, parent=parent, num_options=n + create.astype(jnp.int32),
+    parents = chain.parent.at[slot].set(parent, mode="drop")
+    return chain.replace(status=status, parent=parents, num_options=n + create.astype(jnp.int32),
                          capacity_hit=chain.capacity_hit | (want & ~room))
+
+
+def check_start(start_xy) -> jax.Array:
+    """``start_xy`` as a float32 (2,) array; a ValueError for any other shape."""
+    start_xy = jnp.asarray(start_xy, jnp.float32)
+    if start_xy.shape != (2,):
+        raise ValueError(f"grow_chain: start_xy must have shape (2,), got {start_xy.shape}")
+    return start_xy
+
+
+def grow_chain(chain: Chain, start_xy) -> Chain:
+    """Maturity, then chain growth (call after :func:`refit`, once per learning iteration).
+
+    1. Options in gestation with at least ``gestation`` successes become mature.
+    2. If no option is in gestation, the newest mature option has fitted classifiers, and no mature
+       option's initiation set holds ``start_xy`` (pass the env's start state, ``env.start``), a
+       new option is created in the next free row, in gestation, whose parent is the newest mature
+       option (:func:`add_option`). When the table is full, ``capacity_hit`` is set instead
+       (sticky).
+
+    Beyond the paper, ``dscpp_jax.frontier.grow_chain`` picks the parent by the chain's frontier.
+    """
+    start_xy = check_start(start_xy)
+    chain = mature_options(chain)
+    newest = jnp.max(jnp.where(chain.status == MATURE, jnp.arange(chain.cfg.max_options), -1))
+    return add_option(chain, newest, start_xy)
 
 
 def success_rates(chain: Chain) -> jax.Array:
@@ -625,7 +617,7 @@ def chain_metrics(chain: Chain, start_xy=None) -> dict:
         # every example is its intercept, and when an option's failures start among its
         # successes the fit can put that above zero, so the region holds the whole plane but
         # the examples' own neighbourhood (and counts the start as covered)
-        "unbounded_regions": jnp.sum(_classify_all(chain, UNBOUNDED_PROBE_XY)[0]
+        "unbounded_regions": jnp.sum(classify_all(chain, UNBOUNDED_PROBE_XY)[0]
                                      & (chain.status == MATURE)),
     }
     if start_xy is not None:

@@ -50,10 +50,24 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+import orbax.checkpoint as ocp
+from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
 from dscpp_jax import trainer as T
+from dscpp_jax.checkpoint import CKPT_DIR, NONE_SAVED, NoCheckpointError, as_stored, from_stored, \
+    quiet_orbax
 from dscpp_jax.config import Config
+from dscpp_jax.evaluate import evaluate_episodes_impl, summarize
+
+try:    # JAX's registry of types that vmap batches as a whole (MuJoCo Warp's Data registers there)
+    from jax._src.interpreters.batching import vmappables as _VMAPPABLES
+except ImportError:     # pragma: no cover - older or newer JAX without the registry
+    _VMAPPABLES = {}
+try:    # the switch between the Shardy and the GSPMD partitioner
+    from jax._src.config import use_shardy_partitioner as _use_shardy_partitioner
+except ImportError:     # pragma: no cover - a JAX without the option has no Shardy either
+    _use_shardy_partitioner = None
 
 SEED_AXIS = "seeds"
 PyTree = Any
@@ -192,11 +206,7 @@ def _spec_key(states: PyTree, n: int):
 def _vmappable(x: Any) -> bool:
     """A type that vmap batches as a whole with an int axis (it decides itself which of its fields
     carry the axis): MuJoCo Warp's Data, whose contact buffers all worlds share."""
-    try:
-        from jax._src.interpreters.batching import vmappables
-    except ImportError:     # pragma: no cover - older or newer JAX without the registry
-        vmappables = {}
-    return type(x) in vmappables
+    return type(x) in _VMAPPABLES
 
 
 def _vmap_axes(treedef, specs) -> PyTree:
@@ -215,13 +225,9 @@ def uses_gspmd(mesh: Mesh) -> bool:
 
 
 def _partitioner(gspmd: bool):
-    if not gspmd:
+    if not gspmd or _use_shardy_partitioner is None:
         return contextlib.nullcontext()
-    try:
-        from jax._src.config import use_shardy_partitioner
-    except ImportError:     # pragma: no cover - a JAX without the option has no Shardy either
-        return contextlib.nullcontext()
-    return use_shardy_partitioner(False)
+    return _use_shardy_partitioner(False)
 
 
 class GroupProgram:
@@ -383,7 +389,6 @@ EVAL_KEY_BASE = 1_000_003   # as dscpp_jax.evaluate.evaluate's default key
 @functools.lru_cache(maxsize=None)
 def _eval_fn(mesh: Mesh, treedef, specs: tuple, num_episodes: int, with_starts: bool,
              with_key: bool, explore: bool = False):
-    from dscpp_jax.evaluate import _eval_impl
     in_specs = jax.tree_util.tree_unflatten(treedef, list(specs))
     axes = _vmap_axes(treedef, specs)
 
@@ -391,8 +396,8 @@ def _eval_fn(mesh: Mesh, treedef, specs: tuple, num_episodes: int, with_starts: 
         def one(state, k):
             if not with_key:    # evaluate()'s default: a key from the seed's own iteration
                 k = jax.random.fold_in(jax.random.PRNGKey(EVAL_KEY_BASE), state.counters.iteration)
-            return _eval_impl(state, k, num_episodes, starts if with_starts else None,
-                              explore=explore)
+            return evaluate_episodes_impl(state, k, num_episodes,
+                                          starts if with_starts else None, explore=explore)
         return jax.vmap(one, in_axes=(axes, None))(states, key)
 
     f = jax.shard_map(body, mesh=mesh, in_specs=(in_specs, P(), P()), out_specs=P(SEED_AXIS),
@@ -412,7 +417,6 @@ def evaluate_group(states: T.TrainState, key: Optional[jax.Array] = None,
     Without `key`, seed i uses the key `dscpp_jax.evaluate` would use for it alone (from its
     iteration), so each seed's numbers are those of a separate evaluation; with `key`, every
     seed uses that key. `explore`: with training's action noise (`dscpp_jax.evaluate.evaluate`)."""
-    from dscpp_jax.evaluate import summarize
     n = group_size(states)
     mesh = mesh_of(states) if mesh is None else mesh
     cfg: Config = states.config
@@ -438,7 +442,6 @@ def evaluate_group(states: T.TrainState, key: Optional[jax.Array] = None,
 def to_host(tree: PyTree) -> PyTree:
     """NumPy copies of a pytree of (possibly multi-process, global) arrays, in every process."""
     if jax.process_count() > 1:
-        from jax.experimental import multihost_utils
         return multihost_utils.process_allgather(tree, tiled=True)
     return jax.device_get(tree)
 
@@ -479,8 +482,6 @@ class GroupCheckpointer:
     Zero-size leaves, which orbax refuses, are stored as one-element placeholders."""
 
     def __init__(self, group_dir: str, keep: int = 2):
-        import orbax.checkpoint as ocp
-        from dscpp_jax.checkpoint import CKPT_DIR, quiet_orbax
         quiet_orbax()
         self._ocp = ocp
         self.directory = os.path.abspath(os.path.join(group_dir, CKPT_DIR))
@@ -491,7 +492,6 @@ class GroupCheckpointer:
         """`wait=False` returns once orbax has copied the states to host memory; the files are
         written in the background and the next `save`, `wait`, `latest_step` or `close` waits
         for them (every process calls these at the same iterations)."""
-        from dscpp_jax.checkpoint import as_stored
         self.wait()
         storable = jax.tree_util.tree_map(
             lambda x: np.zeros((1,), x.dtype) if _empty(x) else x, as_stored(states))
@@ -513,17 +513,14 @@ class GroupCheckpointer:
         over `mesh` (default: `like`'s mesh). The mesh may differ from the one that saved."""
         step = self.latest_step() if step is None else step
         if step is None:
-            from dscpp_jax.checkpoint import NONE_SAVED, NoCheckpointError
             raise NoCheckpointError(f"no checkpoint found under {self.directory}: {NONE_SAVED}")
         have = sorted(int(x) for x in self.manager.all_steps())
         if int(step) not in have:
-            from dscpp_jax.checkpoint import NoCheckpointError
             raise NoCheckpointError(f"no checkpoint of step {step} under {self.directory}; it "
                                     f"holds steps {have}")
         n = group_size(like)
         mesh = (mesh_of(like) if hasattr(like.counters.iteration, "sharding") else seed_mesh()) \
             if mesh is None else mesh
-        from dscpp_jax.checkpoint import as_stored, from_stored
         full_like = like
         like = as_stored(like)
         shardings = as_stored(group_shardings(full_like, mesh, n))

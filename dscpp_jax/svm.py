@@ -37,6 +37,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
+from jax.experimental import pallas as pl
+from jax.experimental.pallas import triton as plgpu
 
 __all__ = [
     "SVMModel",
@@ -45,6 +47,13 @@ __all__ = [
     "decision_function",
     "predict",
     "default_max_iter",
+    "one_class_start_bound",
+    "resolve_inner",
+    "svc_problem",
+    "one_class_problem",
+    "fit_problem",
+    "clean_points",
+    "check_max_iter",
 ]
 
 # libsvm's floor on the curvature a_ij of a working pair.
@@ -98,8 +107,8 @@ def _check_backend(backend):
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
 
 
-def _resolve_inner(inner=None, backend="auto") -> Solver:
-    """The static ``Solver`` for this platform.
+def resolve_inner(inner=None, backend="auto") -> Solver:
+    """The static ``Solver`` for this platform (part of a fit's jit cache key).
 
     ``inner``: None (platform defaults), a ``Solver`` (used as given, checked), an int (XLA steps
     per convergence check) or a ``(steps, variadic)`` tuple (XLA loop settings; both select the
@@ -174,6 +183,9 @@ class SVMModel:
 # Argument checks (trace time; only concrete values can be checked)
 
 
+_resolve_inner = resolve_inner   # the old name, still used by experiments/bench_options.py
+
+
 def _concrete(value: Any):
     """The value as a NumPy array, or None when it is traced."""
     try:
@@ -212,7 +224,8 @@ def default_max_iter(n_slots: int) -> int:
     return max(10_000, 4 * int(n_slots))
 
 
-def _check_max_iter(max_iter, n):
+def check_max_iter(max_iter, n):
+    """``max_iter`` as a positive int (``default_max_iter(n)`` for None); a ValueError otherwise."""
     if max_iter is None:
         return default_max_iter(n)
     if not isinstance(max_iter, (int, np.integer)) or max_iter < 1:
@@ -332,7 +345,7 @@ def _smo_step(Xt, y, Cv, gamma, tol, max_iter, variadic, s: _SMOState) -> _SMOSt
 def _solve(X, y, Cv, alpha0, G0, gamma, tol, max_iter: int, inner: Solver):
     """Run SMO from a feasible (alpha0, G0 = Qα₀ + p). Returns (alpha, G, n_iter, gap).
 
-    inner: the static ``Solver`` (see ``_resolve_inner``).
+    inner: the static ``Solver`` (see ``resolve_inner``).
     """
     if inner.backend == "pallas":
         return _solve_pallas(X, y, Cv, alpha0, G0, gamma, tol, max_iter, inner)
@@ -377,7 +390,6 @@ def _solve(X, y, Cv, alpha0, G0, gamma, tol, max_iter: int, inner: Solver):
 
 def _smo_kernel(d: int, chunk: int, n_chunks: int, max_iter: int, variadic: bool, resident: int,
                 steps: int, barrier: bool):
-    from jax.experimental import pallas as pl
 
     CH = chunk
     f32 = jnp.float32
@@ -388,7 +400,6 @@ def _smo_kernel(d: int, chunk: int, n_chunks: int, max_iter: int, variadic: bool
 
     def sync():  # make this program's global-memory writes visible to all its threads
         if barrier:
-            from jax.experimental.pallas import triton as plgpu
             plgpu.debug_barrier()
 
     def kernel(xt_ref, y_ref, c_ref, a0_ref, g0_ref, n_ref, par_ref, al_ref, g_ref, it_ref, gap_ref):
@@ -582,7 +593,6 @@ def _solve_pallas(X, y, Cv, alpha0, G0, gamma, tol, max_iter: int, inner: Solver
     G is exact on the problem's slots (C_i > 0 or α₀_i ≠ 0); other slots return G₀ (they never
     enter the working set and no caller reads their gradient).
     """
-    from jax.experimental import pallas as pl
 
     n, d = X.shape
     CH = inner.chunk
@@ -604,7 +614,6 @@ def _solve_pallas(X, y, Cv, alpha0, G0, gamma, tol, max_iter: int, inner: Solver
             jnp.stack([jnp.asarray(gamma, f32), jnp.asarray(tol, f32)]))
     kwargs = {}
     if not inner.interpret:
-        from jax.experimental.pallas import triton as plgpu
         kwargs["compiler_params"] = plgpu.CompilerParams(num_warps=inner.warps, num_stages=1)
     kernel = _smo_kernel(d, CH, n_chunks, int(max_iter), inner.variadic, inner.resident, inner.steps,
                          barrier=not inner.interpret)
@@ -645,11 +654,13 @@ def _rho(y, Cv, alpha, G, mask):
 
 
 # --------------------------------------------------------------------------------------------
-# Problem set-up (shared with initiation.py, which switches between them with traced flags)
+# Problem set-up (public: initiation.py sets up both problems and switches between them with
+# traced flags)
 
 
-def _svc_problem(labels, mask, C, balanced):
-    """(y, C_i, α₀, G₀) of a C-SVC; ``balanced`` may be a traced bool."""
+def svc_problem(labels, mask, C, balanced):
+    """(y, C_i, α₀, G₀) of a C-SVC, the problem ``fit_problem`` solves; ``balanced`` may be a
+    traced bool."""
     mask = mask.astype(bool)
     pos = mask & (labels > 0)
     neg = mask & ~(labels > 0)
@@ -682,7 +693,7 @@ def one_class_start_bound(nu, n_slots: int) -> int:
     return int(min(n_slots, np.floor(float(v) * n_slots) + 2))
 
 
-def _one_class_problem(X, mask, nu, gamma, start_bound=None):
+def one_class_problem(X, mask, nu, gamma, start_bound=None):
     """(y, C_i, α₀, G₀ = Kα₀) of a one-class ν-SVM.
 
     ``start_bound`` (static): at most this many nonzero α₀ (see ``one_class_start_bound``), so
@@ -702,7 +713,7 @@ def _one_class_problem(X, mask, nu, gamma, start_bound=None):
     return y, Cv, alpha0, G0
 
 
-def _fit_problem(X, mask, problem, one_class, gamma, tol, max_iter, inner):
+def fit_problem(X, mask, problem, one_class, gamma, tol, max_iter, inner):
     """Solve a set-up problem. Returns (model, training decision values f(X))."""
     y, Cv, alpha0, G0 = problem
     alpha, G, n_iter, gap = _solve(X, y, Cv, alpha0, G0, gamma, tol, max_iter, inner)
@@ -725,23 +736,23 @@ def _fit_problem(X, mask, problem, one_class, gamma, tol, max_iter, inner):
     return model, y * (G - p) - rho
 
 
-def _clean(X, mask):
+def clean_points(X, mask):
     """float32 points with padded slots zeroed (whatever they held, NaN included)."""
     return jnp.where(mask.astype(bool)[:, None], X.astype(jnp.float32), 0.0)
 
 
 @functools.partial(jax.jit, static_argnames=("max_iter", "inner"))
 def _fit_svc_jit(X, labels, mask, gamma, C, balanced, tol, max_iter, inner):
-    X = _clean(X, mask)
-    problem = _svc_problem(labels, mask, jnp.asarray(C, jnp.float32), balanced)
-    return _fit_problem(X, mask, problem, False, gamma, tol, max_iter, inner)[0]
+    X = clean_points(X, mask)
+    problem = svc_problem(labels, mask, jnp.asarray(C, jnp.float32), balanced)
+    return fit_problem(X, mask, problem, False, gamma, tol, max_iter, inner)[0]
 
 
 @functools.partial(jax.jit, static_argnames=("max_iter", "inner", "start_bound"))
 def _fit_one_class_jit(X, mask, nu, gamma, tol, max_iter, inner, start_bound):
-    X = _clean(X, mask)
-    problem = _one_class_problem(X, mask, jnp.asarray(nu, jnp.float32), gamma, start_bound)
-    return _fit_problem(X, mask, problem, True, gamma, tol, max_iter, inner)[0]
+    X = clean_points(X, mask)
+    problem = one_class_problem(X, mask, jnp.asarray(nu, jnp.float32), gamma, start_bound)
+    return fit_problem(X, mask, problem, True, gamma, tol, max_iter, inner)[0]
 
 
 # --------------------------------------------------------------------------------------------
@@ -780,9 +791,9 @@ def fit_svc(X, labels, mask, *, gamma, C=1.0, class_weight=None, tol=1e-3, max_i
         balanced = jnp.asarray(class_weight, bool)
         if balanced.shape != ():
             raise ValueError(f"a class_weight switch must be a scalar bool, got shape {balanced.shape}")
-    max_iter = _check_max_iter(max_iter, X.shape[0])
+    max_iter = check_max_iter(max_iter, X.shape[0])
     return _fit_svc_jit(X, labels, mask, gamma, C, balanced, tol, max_iter=max_iter,
-                        inner=_resolve_inner(_inner, backend))
+                        inner=resolve_inner(_inner, backend))
 
 
 def fit_one_class(X, mask, *, nu, gamma, tol=1e-3, max_iter=None, backend="auto",
@@ -798,8 +809,8 @@ def fit_one_class(X, mask, *, nu, gamma, tol=1e-3, max_iter=None, backend="auto"
     _check_range("nu", nu, 0.0, 1.0)
     _check_range("gamma", gamma, 0.0, None)
     _check_range("tol", tol, 0.0, None)
-    max_iter = _check_max_iter(max_iter, X.shape[0])
-    return _fit_one_class_jit(X, mask, nu, gamma, tol, max_iter=max_iter, inner=_resolve_inner(_inner, backend),
+    max_iter = check_max_iter(max_iter, X.shape[0])
+    return _fit_one_class_jit(X, mask, nu, gamma, tol, max_iter=max_iter, inner=resolve_inner(_inner, backend),
                               start_bound=one_class_start_bound(nu, X.shape[0]))
 
 

@@ -282,7 +282,8 @@ def td3_target_noise(cfg: TD3Config, key: jax.Array, shape: Tuple[int, ...]) -> 
 
 
 def td3_targets(cfg: TD3Config, state: TD3State, batch: Transition, noise: jax.Array) -> jax.Array:
-    """Clipped double-Q TD targets ``r + gamma * c * min_i Q'_i(s', g, clip(pi'(s', g) + noise))``.
+    """Clipped double-Q TD targets ``r + gamma * c * min_i Q'_i(s', g, clip(pi'(s', g) + noise))``
+    (Fujimoto et al. 2018; the regression targets of :func:`td3_critic_loss`).
 
     ``c = batch.discount`` is the continuation flag (0 at the goal). With ``cfg.target_range``
     the targets are clipped to that interval. Pure; shape ``(B,)``.
@@ -294,6 +295,30 @@ def td3_targets(cfg: TD3Config, state: TD3State, batch: Transition, noise: jax.A
     if cfg.target_range is not None:
         y = jnp.clip(y, cfg.target_range[0], cfg.target_range[1])
     return y
+
+
+def td3_critic_loss(cfg: TD3Config, critic_params: PyTree, batch: Transition, y: jax.Array
+                    ) -> Tuple[jax.Array, jax.Array]:
+    """TD3's critic loss (Fujimoto et al. 2018, clipped double Q-learning): the sum over the twin
+    heads of the mean squared error to the shared targets ``y`` = :func:`td3_targets`,
+    ``sum_i mean_B (Q_i(s, g, a) - y)^2``. The reward in ``y`` is the paper's option reward
+    (appendix, "Policy learning"): 0 on reaching the goal ``g`` and -1 otherwise, with ``g``
+    relabelled by HER. Returns (loss, the heads' Q values (2, B))."""
+    q = _q(cfg, critic_params, batch.obs, batch.goal, batch.action)  # (2, B)
+    return jnp.sum(jnp.mean(jnp.square(q - y[None]), axis=-1)), q
+
+
+def td3_actor_loss(cfg: TD3Config, actor_params: PyTree, critic_params: PyTree,
+                   batch: Transition) -> jax.Array:
+    """TD3's deterministic policy-gradient loss ``-mean_B Q_1(s, g, pi(s, g))``: the goal-
+    conditioned option policy ``pi_o(s | g) = argmax_a Q(s, a | g)`` of the paper's appendix
+    ("Learning a single value function"); plus ``action_l2 * mean (a / max_action)^2`` when
+    ``cfg.action_l2 > 0``."""
+    a = _pi(cfg, actor_params, batch.obs, batch.goal)
+    loss = -jnp.mean(_q1(cfg, critic_params, batch.obs, batch.goal, a))
+    if cfg.action_l2 > 0:
+        loss = loss + cfg.action_l2 * jnp.mean(jnp.square(a / cfg.max_action))
+    return loss
 
 
 def _polyak(tau: float, target: PyTree, online: PyTree) -> PyTree:
@@ -317,11 +342,8 @@ def td3_update(
     noise = td3_target_noise(cfg, key, batch.action.shape)
     y = jax.lax.stop_gradient(td3_targets(cfg, state, batch, noise))
 
-    def critic_loss_fn(params):
-        q = _q(cfg, params, batch.obs, batch.goal, batch.action)  # (2, B)
-        return jnp.sum(jnp.mean(jnp.square(q - y[None]), axis=-1)), q
-
-    (critic_loss, q), grads = jax.value_and_grad(critic_loss_fn, has_aux=True)(state.critic_params)
+    (critic_loss, q), grads = jax.value_and_grad(
+        lambda p: td3_critic_loss(cfg, p, batch, y), has_aux=True)(state.critic_params)
     updates, critic_opt_state = _critic_tx(cfg).update(grads, state.critic_opt_state, state.critic_params)
     critic_params = optax.apply_updates(state.critic_params, updates)
     step = state.step + 1
@@ -329,14 +351,8 @@ def td3_update(
     def actor_step(operand):
         actor_params, actor_opt_state, t_actor, t_critic = operand
 
-        def actor_loss_fn(params):
-            a = _pi(cfg, params, batch.obs, batch.goal)
-            loss = -jnp.mean(_q1(cfg, critic_params, batch.obs, batch.goal, a))
-            if cfg.action_l2 > 0:
-                loss = loss + cfg.action_l2 * jnp.mean(jnp.square(a / cfg.max_action))
-            return loss
-
-        loss, g = jax.value_and_grad(actor_loss_fn)(actor_params)
+        loss, g = jax.value_and_grad(
+            lambda p: td3_actor_loss(cfg, p, critic_params, batch))(actor_params)
         upd, actor_opt_state = _actor_tx(cfg).update(g, actor_opt_state, actor_params)
         actor_params = optax.apply_updates(actor_params, upd)
         t_actor = _polyak(cfg.tau, t_actor, actor_params)

@@ -1,14 +1,16 @@
 """The DSC++ training loop as pure functions: `init(key, config) -> TrainState` and the jitted
-`train_step(state) -> (state, metrics)`.
+`train_step(state) -> (state, metrics)` (its docstring outlines the paper's Algorithms 2 and 3).
 
 One `train_step` advances `num_envs` (B) environments `steps_per_iter` (T) steps inside a
-`lax.scan` (environments vmapped), then learns: TD3+HER gradient steps, dynamics-model steps,
-classifier refits of the options that received new examples, chain growth and the DP refresh.
-No host round trip happens inside; all sizes come from the static `Config`, so the step compiles
-once. With B = 1 and T = one episode it follows the paper's sequential schedule; with many
-environments it is the accelerated variant.
+`lax.scan` (`rollout`; environments vmapped), then learns (`learn`): TD3+HER gradient steps,
+dynamics-model steps, classifier refits of the options that received new examples, chain growth
+and the DP refresh. No host round trip happens inside; all sizes come from the static `Config`,
+so the step compiles once. With B = 1 and T = one episode it follows the paper's sequential
+schedule; with many environments it is the accelerated variant.
 
-Per environment step:
+What one step of an environment does lives in `dscpp_jax.acting` (shared with evaluation), what
+the learning phase does in `dscpp_jax.learning`; this module holds the state, the environments,
+`init` and the wiring. Per environment step:
 1. environments without a running option pick one (walk the chain from the goal option outward;
    the global option otherwise) and a subgoal for it (robust sampling or the DP table);
    flat algorithms always run the global option towards the task goal;
@@ -23,9 +25,9 @@ Per environment step:
 In-band evaluation (`Config.inband_eval_envs` = E > 0): E more environments run evaluation
 episodes from the task start in the same scan, stepped in one physics batch of B + E with the
 training environments (`envs.goal_env.join_states`; with `inband_eval_batched` off, by a second
-vmapped step). They act with `evaluate`'s
-deterministic policy, as of the iteration's start, and write only `TrainState.inband` (their env
-and option state, and a ring of the last finished outcomes); metrics `inband/*`.
+vmapped step). They act with evaluation's deterministic policy (`acting.inband_act`), as of the
+iteration's start, and write only `TrainState.inband` (their env and option state, and a ring of
+the last finished outcomes); metrics `inband/*`.
 """
 from __future__ import annotations
 
@@ -39,37 +41,34 @@ import flax.struct
 import jax
 import jax.numpy as jnp
 
+import envs
+from dscpp_jax import acting, learning
+# GLOBAL_OPTION, GOAL_OPTION, dyn_config and mpc_config are re-exported: part of trainer's API
+from dscpp_jax.acting import (FRONTIER_KEY_SALT, GLOBAL_OPTION, GOAL_OPTION, NO_OPTION,  # noqa
+                              ExecState, InbandState, all_seeds, any_seed, choose_options,
+                              diverse_starts, dyn_config, exec_init, frontier_pool, inband_act,
+                              inband_metrics, inband_record, mpc_config, option_end,
+                              policy_actions, push_traj, record_outcomes, td3_config)
 from dscpp_jax.config import Config
+from dscpp_jax.learning import td3_buffer, td3_sample_fn  # noqa: F401  (re-exported)
+from dscpp_jax.options import ChainConfig, chain_init
+from dscpp_jax.replay import Replay, TrajStep, replay_add, replay_init
+from dscpp_jax.subgoals import dp_table_init
+from dscpp_jax.td3 import TD3State, td3_init, td3_init_per_option, td3_random_prob
+from envs.ant_maze import warp_available
 from envs.goal_env import join_states, select_state, select_states, split_states
-from dscpp_jax.replay import Replay, TrajStep, replay_add, replay_flatten, replay_init, replay_sample
-from dscpp_jax.td3 import TD3Config, TD3State, td3_init, td3_explore, td3_act, td3_updates, td3_value, \
-    td3_random_prob, td3_init_per_option, td3_option, td3_perturb, td3_updates_per_option
 
 PyTree = Any
-NO_OPTION = -1
-GLOBAL_OPTION = 0
-GOAL_OPTION = 1
 
 
 # ------------------------------------------------------------------------------------------------
 # State
 # ------------------------------------------------------------------------------------------------
 @flax.struct.dataclass
-class ExecState:
-    """Per-environment option execution (leading axis B)."""
-
-    option: jax.Array      # int32, NO_OPTION when none runs
-    subgoal: jax.Array     # (2,) the goal the running option pursues
-    opt_steps: jax.Array   # int32 steps since the option started
-    start_xy: jax.Array    # (2,) where the option started
-    start_obs: jax.Array   # (obs_dim,) observation where the option started (DP inputs)
-    traj: jax.Array        # (buffer_len, 2) last positions, oldest first
-    traj_count: jax.Array  # int32 number of valid rows at the end of `traj`
-    seg_id: jax.Array      # int32, increments at every option start (HER segments)
-
-
-@flax.struct.dataclass
 class Counters:
+    """Run counters (int32 scalars): environment steps, finished episodes, iterations, successful
+    episodes and option executions."""
+
     env_steps: jax.Array
     episodes: jax.Array
     iteration: jax.Array
@@ -79,23 +78,11 @@ class Counters:
 
 
 @flax.struct.dataclass
-class InbandState:
-    """In-band evaluation (`Config.inband_eval_envs` = E > 0): E envs that run evaluation episodes
-    from the task start inside `train_step`, and the outcomes of the last K finished ones
-    (K = `Config.inband_window`, a ring written in order of finishing)."""
-
-    env_state: PyTree      # (E,) envs
-    exec: ExecState        # (E,) their option execution
-    key: jax.Array         # the stream's key: (k_reset, k_run) = split(key), as `evaluate` splits
-    t: jax.Array           # int32 in-band steps taken; step t acts with fold_in(k_run, t)
-    ep_steps: jax.Array    # (E,) int32 steps of the running episodes
-    success: jax.Array     # (K,) bool: finished episode reached the goal
-    steps: jax.Array       # (K,) int32: its length in steps
-    episodes: jax.Array    # int32 in-band episodes finished so far (ring slot: episodes % K)
-
-
-@flax.struct.dataclass
 class TrainState:
+    """Everything a run carries from one `train_step` to the next (all of it checkpointed): the
+    training envs and their running options, the skill chain, the learners, the replays, the DP
+    table, the counters, the PRNG key and the static config."""
+
     env_state: PyTree
     exec: ExecState
     chain: PyTree
@@ -112,7 +99,7 @@ class TrainState:
 
 
 # ------------------------------------------------------------------------------------------------
-# Component configs derived from the run config
+# Environments and the learners' configs
 # ------------------------------------------------------------------------------------------------
 SEED_AXIS = "runs"
 """The vmap axis name over the runs of a seed group (see `train_step_impl`'s ``seed_axis``; the
@@ -126,7 +113,6 @@ def resolve_physics(config: Config) -> Config:
         return config
     if config.env.startswith("point_"):
         return config.override(physics="jax")
-    from envs.ant_maze import warp_available
     use_warp = jax.default_backend() == "gpu" and warp_available()
     return config.override(physics="warp" if use_warp else "jax")
 
@@ -144,7 +130,6 @@ def make_env(config: Config, worlds: Optional[int] = None):
 
 @functools.lru_cache(maxsize=None)
 def _make_env(name, episode_length, goal_tolerance, integrator, physics, worlds):
-    import envs
     # the first call may come from inside a trace (jit/vmap of init_impl): build the env's
     # constants eagerly so that none of them is a tracer that outlives it
     with jax.ensure_compile_time_eval():
@@ -152,7 +137,6 @@ def _make_env(name, episode_length, goal_tolerance, integrator, physics, worlds)
 
 
 def _build_env(name, episode_length, goal_tolerance, integrator, physics, worlds):
-    import envs
     kw = {} if name.startswith("point_") else dict(
         integrator=integrator, physics=physics,
         **({"warp_worlds": worlds} if physics == "warp" else {}))
@@ -240,56 +224,29 @@ def prewarm_physics(config: Config) -> Optional[threading.Thread]:
 INBAND_KEY_SALT = 0x1B_E7A1
 """`init`'s key folded with this gives the in-band stream's key (the training stream's keys come
 from splitting `init`'s key, so they are the same with in-band evaluation on or off)."""
-FRONTIER_KEY_SALT = 0xF0_27E1
-"""The iteration's key folded with this gives the frontier candidates' key (dscpp_jax.frontier),
-off the keys the rest of the iteration splits, so runs without the frontier are unchanged."""
-
-
-def td3_config(config: Config) -> TD3Config:
-    base = TD3Config.model_based if config.model_based else TD3Config.model_free
-    kw = dict(batch_size=config.td3_batch_size, hidden=(config.td3_hidden, config.td3_hidden),
-              discount=config.discount, exploration_noise=config.action_noise,
-              replay_capacity=config.replay_capacity,
-              actor_lr=config.effective_td3_lr, critic_lr=config.effective_td3_lr,
-              action_l2=config.td3_action_l2, compute_dtype=config.td3_dtype)
-    if config.td3_clip_targets:   # the value range under the 0 / -1 reward
-        kw.update(target_range=(-1.0 / (1.0 - config.discount), 0.0))
-    if config.random_action_prob >= 0:
-        kw.update(random_action_prob=config.random_action_prob)
-        if config.model_based:
-            kw.update(random_action_prob_start=config.random_action_prob)
-    if not config.model_based:
-        kw.update(random_action_prob_start=config.mf_initial_random_prob,
-                  random_action_switch_successes=config.mf_random_decay_successes)
-    return base(**kw)
-
-
-def _obs_dim(config: Config) -> int:
+def observation_size(config: Config) -> int:
+    """The observation size of `config`'s env."""
     return int(make_env(config).observation_size)
 
 
-def _act_dim(config: Config) -> int:
+def action_size(config: Config) -> int:
+    """The action size of `config`'s env."""
     return int(make_env(config).action_size)
+
+
+def chain_config(config: Config) -> ChainConfig:
+    """The skill chain's static sizes and classifier settings of `config`."""
+    return ChainConfig(max_options=config.max_options, gestation=config.gestation,
+                       buffer_len=config.buffer_len, option_timeout=config.option_timeout,
+                       max_pos_traj=config.max_pos_traj, max_neg=config.max_neg,
+                       variant=config.classifier_variant, goal_tolerance=config.goal_tolerance,
+                       subgoal_tolerance=config.goal_tolerance, obs_dim=observation_size(config),
+                       svm_gamma=config.svm_gamma, svm_backend=config.svm_backend)
 
 
 # ------------------------------------------------------------------------------------------------
 # init
 # ------------------------------------------------------------------------------------------------
-def exec_init(config: Config, obs, goal) -> ExecState:
-    """No option running in any of the B environments (obs: (B, obs_dim))."""
-    B = obs.shape[0]
-    return ExecState(
-        option=jnp.full((B,), NO_OPTION, jnp.int32),
-        subgoal=jnp.broadcast_to(jnp.asarray(goal, jnp.float32), (B, 2)),
-        opt_steps=jnp.zeros((B,), jnp.int32),
-        start_xy=obs[:, :2],
-        start_obs=obs,
-        traj=jnp.zeros((B, config.buffer_len, 2), jnp.float32),
-        traj_count=jnp.zeros((B,), jnp.int32),
-        seg_id=jnp.zeros((B,), jnp.int32),
-    )
-
-
 def init(key: jax.Array, config: Config) -> TrainState:
     """A fresh TrainState for `config` (validated first, before anything compiles); jitted, and
     vmap-able over `key`.
@@ -305,7 +262,7 @@ def init(key: jax.Array, config: Config) -> TrainState:
                         f"jax.random.PRNGKey(0)), got {type(key).__name__}")
     config = resolve_physics(config.validate()).device_view()
     make_env(config)  # unknown env names fail here, not inside a trace
-    return _init_jit(key, config)
+    return init_jit(key, config)
 
 
 def compile_ahead(key: jax.Array, config: Config, state: Optional[TrainState] = None) -> None:
@@ -315,8 +272,8 @@ def compile_ahead(key: jax.Array, config: Config, state: Optional[TrainState] = 
     only `train_step`, on `state` (a run that starts from a given state)."""
     if state is None:
         config = resolve_physics(config.validate()).device_view()
-        _init_jit.lower(key, config).compile()
-        state = jax.eval_shape(_init_jit, key, config)
+        init_jit.lower(key, config).compile()
+        state = jax.eval_shape(init_jit, key, config)
     train_step.lower(state).compile()
 
 
@@ -339,14 +296,13 @@ def init_impl(key: jax.Array, config: Config) -> TrainState:
                        option=None if config.shared_critic else jnp.zeros((), jnp.int32))
     replay = replay_init(example, config.replay_capacity, B)
     if config.model_based:
-        dyn = _dynamics_init(k_dyn, od, ad, config)
+        dyn = learning.init_dynamics(k_dyn, od, ad, config)
         model_replay = replay_init((jnp.zeros((od,)), jnp.zeros((ad,)), jnp.zeros((od,))),
                                    config.model_capacity, B)
     else:
         dyn, model_replay = None, None
-    chain = _chain_init(config, goal) if config.hierarchical else None
-    dp_table = _dp_table_init(config, chain) if (config.hierarchical and config.subgoal == "dp") \
-        else None
+    chain = chain_init(chain_config(config), goal) if config.hierarchical else None
+    dp_table = dp_table_init(chain) if (config.hierarchical and config.subgoal == "dp") else None
     z = jnp.zeros((), jnp.int32)
     counters = Counters(env_steps=z, episodes=z, iteration=z, episode_successes=z,
                         option_successes=z, warmup_done=jnp.zeros((), bool))
@@ -370,114 +326,19 @@ def inband_init(key: jax.Array, config: Config) -> InbandState:
                        steps=jnp.zeros((K,), jnp.int32), episodes=z)
 
 
-_init_jit = jax.jit(init_impl, static_argnames=("config",))
+init_jit = jax.jit(init_impl, static_argnames=("config",))
+"""Jitted `init_impl(key, config)` (`init` validates its arguments first, then calls this)."""
+_init_jit = init_jit   # the old name, still used by experiments/profile_startup.py
 
 
 # ------------------------------------------------------------------------------------------------
-# Acting (shared by training and evaluation)
+# Algorithm 2: the rollout (acting in B environments for T steps)
 # ------------------------------------------------------------------------------------------------
-def _choose_options(config: Config, env, chain, dp_table, td3, ex: ExecState, obs, key,
-                    active=None, evaluation: bool = False):
-    """Start an option (and pick its subgoal) in every env whose `ex.option` is NO_OPTION.
-    `evaluation`: the policy over options prefers pessimistic regions when
-    `config.eval_prefer_pessimistic` is set."""
-    B = obs.shape[0]
-    xy = obs[:, :2]
-    goal = jnp.asarray(env.goal, jnp.float32)
-    need = ex.option == NO_OPTION
-    if active is not None:
-        need = need & active
-    if config.hierarchical:
-        keys = jax.random.split(key, B)
-        pessimistic_first = evaluation and config.eval_prefer_pessimistic
-        new_opt = _select_option(config, chain, xy, pessimistic_first)        # (B,)
-        sub = _pick_subgoals(config, chain, dp_table, td3, new_opt, obs, keys)  # (B, 2)
-    else:
-        new_opt = jnp.full((B,), GLOBAL_OPTION, jnp.int32)
-        sub = jnp.broadcast_to(goal, (B, 2))
-    return ex.replace(
-        option=jnp.where(need, new_opt, ex.option),
-        subgoal=jnp.where(need[:, None], sub, ex.subgoal),
-        opt_steps=jnp.where(need, 0, ex.opt_steps),
-        start_xy=jnp.where(need[:, None], xy, ex.start_xy),
-        start_obs=jnp.where(need[:, None], obs, ex.start_obs),
-        traj_count=jnp.where(need, 0, ex.traj_count),
-        seg_id=ex.seg_id + need.astype(jnp.int32),
-    )
-
-
-def _policy_actions(config: Config, td3, dyn, obs, goals, key, explore: bool, rand_prob,
-                    options=None):
-    """(B, obs), (B, 2) -> (B, act): MPC or the actor; with exploration when `explore`.
-    `options` (B,): the option each env runs; with `config.shared_critic` off each env acts with
-    its option's actor (NO_OPTION, an env that runs none, with the global option's)."""
-    B = obs.shape[0]
-    tcfg = td3_config(config)
-    if not config.shared_critic:
-        if config.model_based or options is None:
-            raise ValueError("per-option actors (shared_critic=False) act for model-free "
-                             "algorithms and need the option of every env")
-        params = td3_option(td3, jnp.clip(options, 0)).actor_params     # gathered per env
-        acts = jax.vmap(lambda p, s, g: td3_act(tcfg, p, s, g))(params, obs, goals)
-        return td3_perturb(tcfg, acts, key, random_prob=rand_prob) if explore else acts
-    if config.model_based:
-        value_fn = value_net = None
-        if config.uses_value_in_mpc:
-            value_fn = _value_fn(config, td3)      # XLA paths
-            value_net = _value_net(config, td3)    # fused into the MPC kernel on a GPU
-        k_mpc, k_r, k_u = jax.random.split(key, 3)
-        acts = _mpc_actions(config, dyn, k_mpc, obs, goals, value_fn, value_net)
-        if explore:
-            p = config.effective_random_prob
-            rand = jax.random.uniform(k_u, acts.shape, acts.dtype, -1.0, 1.0)
-            use = jax.random.uniform(k_r, (B,)) < p
-            acts = jnp.where(use[:, None], rand, acts)
-        return acts
-    if explore:
-        return td3_explore(tcfg, td3.actor_params, key, obs, goals, random_prob=rand_prob)
-    return td3_act(tcfg, td3.actor_params, obs, goals)
-
-
-def _option_end(config: Config, env, chain, ex: ExecState, next_xy, done):
-    """Local success / timeout / episode end of the running options. Returns (ended, success)."""
-    running = ex.option != NO_OPTION
-    near = jnp.linalg.norm(next_xy - ex.subgoal, axis=-1) <= config.goal_tolerance
-    if config.hierarchical:
-        goal = jnp.asarray(env.goal, jnp.float32)
-        term = _option_terminates(config, chain, ex.option, next_xy, goal)
-        success = running & term & near
-        # `ex.opt_steps` counts the steps already taken (the caller has pushed this step)
-        timeout = ex.opt_steps >= config.option_timeout
-    else:
-        success = running & near
-        timeout = jnp.zeros_like(running)
-    ended = running & (success | timeout | (done > 0))
-    return ended, success
-
-
-def _push_traj(ex: ExecState, xy):
-    traj = jnp.concatenate([ex.traj[:, 1:], xy[:, None, :]], axis=1)
-    return ex.replace(traj=traj, traj_count=jnp.minimum(ex.traj_count + 1, ex.traj.shape[1]),
-                      opt_steps=ex.opt_steps + 1)
-
-
-# ------------------------------------------------------------------------------------------------
-# train_step
-# ------------------------------------------------------------------------------------------------
-def _any_seed(pred, seed_axis):
-    """Scalar bool: `pred` holds in some run of the enclosing seed vmap (itself without one)."""
-    if seed_axis is None:
-        return pred
-    return jax.lax.psum(pred.astype(jnp.int32), seed_axis) > 0
-
-
-def _all_seeds(pred, seed_axis):
-    if seed_axis is None:
-        return pred
-    return ~_any_seed(~pred, seed_axis)
-
-
-def _rollout(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[str, jax.Array]]:
+def rollout(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[str, jax.Array]]:
+    """Algorithm 2's ROLLOUT over `config.steps_per_iter` steps of the `num_envs` training envs
+    (and the in-band evaluation envs), one `lax.scan`: choose options and subgoals, act, step,
+    end options, record their outcomes in the chain, push transitions to the replays, restart
+    finished episodes. Returns (state, ``train/*``, ``frontier/pool`` and ``inband/*`` metrics)."""
     config = state.config
     env = make_env(config)
     B = config.num_envs
@@ -494,26 +355,30 @@ def _rollout(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[s
     # the link in gestation targets, fixed for the iteration (the chain changes between them)
     front = None
     if config.hierarchical and config.frontier_start_prob > 0:
-        front = _frontier_pool(config, env, state.chain,
-                               jax.random.fold_in(key, FRONTIER_KEY_SALT))
+        front = frontier_pool(config, env, state.chain, jax.random.fold_in(key, FRONTIER_KEY_SALT))
 
     def body(carry, k):
         es, ex, chain, replay, model_replay, acc, ib = carry
         k_opt, k_act, k_rand, k_reset, k_start = jax.random.split(k, 5)
         obs = es.obs
-        xy = obs[:, :2]
-        ex = _choose_options(config, env, chain, dp_table, td3, ex, obs, k_opt)
-        rand_acts = jax.random.uniform(k_rand, (B, act_dim), jnp.float32, -1.0, 1.0)
-        # under a seed vmap a batched predicate would run the policy (MPC) on every step of
+
+        # CHOOSE OPTIONS AND SUBGOALS (Alg. 2, l. 4-5)
+        ex = choose_options(config, env, chain, dp_table, td3, ex, obs, k_opt)
+
+        # ACT (Alg. 2, l. 6): random during warm-up, else the option policy with exploration.
+        # Under a seed vmap a batched predicate would run the policy (MPC) on every step of
         # every seed: branch on "all seeds warm up", select per seed inside
+        rand_acts = jax.random.uniform(k_rand, (B, act_dim), jnp.float32, -1.0, 1.0)
         acts = jax.lax.cond(
-            _all_seeds(warmup, seed_axis), lambda: rand_acts,
-            lambda: jnp.where(warmup, rand_acts, _policy_actions(
+            all_seeds(warmup, seed_axis), lambda: rand_acts,
+            lambda: jnp.where(warmup, rand_acts, policy_actions(
                 config, td3, dyn, obs, ex.subgoal, k_act, True, rand_prob, ex.option)))
+
+        # STEP THE ENVS (the in-band envs too, in one physics batch or a second call)
         if ib is None:
             nes = jax.vmap(env.step)(es, acts)
         else:
-            ib_ex, ib_acts = _inband_act(config, ib_env, ib_chain, dp_table, td3, dyn, ib)
+            ib_ex, ib_acts = inband_act(config, ib_env, ib_chain, dp_table, td3, dyn, ib)
             if inband_batched(config):   # one physics batch of B + E envs
                 j_env = step_env(config)
                 like = jax.eval_shape(jax.vmap(j_env.reset),
@@ -524,22 +389,28 @@ def _rollout(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[s
             else:
                 nes = jax.vmap(env.step)(es, acts)
                 ib_nes = jax.vmap(ib_env.step)(ib.env_state, ib_acts)
-            ib = _inband_record(config, ib_env, ib_chain, ib, ib_ex, ib_nes, seed_axis)
+            ib = inband_record(config, ib_env, ib_chain, ib, ib_ex, ib_nes, seed_axis)
         next_xy = nes.obs[:, :2]
         nan = nes.info["nan"] > 0
         overflow = jnp.any(nes.info["overflow"] > 0)
         on_back = env.upright(nes.obs) < 0
-        ex = _push_traj(ex, next_xy)
-        ended, success = _option_end(config, env, chain, ex, next_xy, nes.done)
-        # record option outcomes (not during warm-up: random actions say nothing about options)
+
+        # END OPTIONS (Alg. 2, l. 7) AND RECORD THEIR OUTCOMES (l. 8-11); not during warm-up:
+        # random actions say nothing about options
+        ex = push_traj(ex, next_xy)
+        ended, success = option_end(config, env, chain, ex, next_xy, nes.done)
         if config.hierarchical:
             events = ended & ~warmup
-            chain = _record_outcomes(config, chain, ex, success, events)
+            chain = record_outcomes(config, chain, ex, success, events)
+
+        # PUSH TRANSITIONS (s, o, a, s', g) TO THE REPLAYS
         replay = replay_add(replay, TrajStep(
             obs=obs, action=acts, next_obs=nes.obs, goal=ex.subgoal, seg_id=ex.seg_id,
             option=None if config.shared_critic else ex.option), ~nan)
         if config.model_based:
             model_replay = replay_add(model_replay, (obs, acts, nes.obs), ~nan)
+
+        # COUNT
         done = nes.done > 0
         ep_success = nes.info["success"] > 0
         acc = dict(acc)
@@ -553,15 +424,15 @@ def _rollout(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[s
         acc["on_back_steps"] = acc["on_back_steps"] + jnp.sum(on_back)
         ex = ex.replace(option=jnp.where(ended, NO_OPTION, ex.option))
 
-        # auto-reset finished episodes (diverse starts after warm-up). Whether the warm-up is
-        # over counts the episodes finished up to this step: the envs' first episodes all end
-        # on one step, and the episodes they begin there are the first after the warm-up
+        # RESTART FINISHED EPISODES (diverse starts after warm-up). Whether the warm-up is over
+        # counts the episodes finished up to this step: the envs' first episodes all end on one
+        # step, and the episodes they begin there are the first after the warm-up
         warm_next = state.counters.episodes + acc["episodes"] < config.warmup_episodes
 
         def reset_all(_):
             ks = jax.random.split(k_reset, B)
             if config.diverse_starts:
-                starts = _diverse_starts(config, env, k_start, B, front)
+                starts = diverse_starts(config, env, k_start, B, front)
                 fresh_div = jax.vmap(env.reset_at)(ks, starts)
                 fresh_task = jax.vmap(env.reset)(ks)
                 fresh = select_state(warm_next, fresh_task, fresh_div)
@@ -573,10 +444,9 @@ def _rollout(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[s
                 fresh = jax.vmap(env.reset)(ks)
             return select_states(done, fresh, nes)
 
-        nes = jax.lax.cond(_any_seed(jnp.any(done), seed_axis), reset_all, lambda _: nes, None)
+        nes = jax.lax.cond(any_seed(jnp.any(done), seed_axis), reset_all, lambda _: nes, None)
         return (nes, ex, chain, replay, model_replay, acc, ib), None
 
-    K = config.max_options
     z = jnp.zeros((), jnp.int32)
     acc0 = dict(episodes=z, episode_successes=z, option_events=z, option_successes=z,
                 nan_episodes=z, ep_len_sum=z, overflow_steps=z, on_back_steps=z)
@@ -584,6 +454,8 @@ def _rollout(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[s
              state.inband)
     carry, _ = jax.lax.scan(body, carry, jax.random.split(key, config.steps_per_iter))
     es, ex, chain, replay, model_replay, acc, inband = carry
+
+    # COUNTERS AND METRICS
     c = state.counters
     counters = c.replace(
         env_steps=c.env_steps + B * config.steps_per_iter,
@@ -619,159 +491,16 @@ def _rollout(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[s
 
 
 # ------------------------------------------------------------------------------------------------
-# In-band evaluation
+# Learning, and the whole iteration
 # ------------------------------------------------------------------------------------------------
-def _where_rows(pred, on_true, on_false):
-    """Per-row select over pytrees with a leading axis (pred: (E,))."""
-    return jax.tree_util.tree_map(
-        lambda a, b: jnp.where(pred.reshape(pred.shape + (1,) * (a.ndim - 1)), a, b),
-        on_true, on_false)
-
-
-def _inband_act(config: Config, env, chain, dp_table, td3, dyn, ib: InbandState):
-    """The evaluation policy at in-band step ``ib.t``: `_eval_impl`'s choice at its step t (option
-    selection preferring pessimistic regions as configured, subgoals, MPC or the actor without
-    exploration). Returns (exec state, (E, act) actions)."""
-    _, k_run = jax.random.split(ib.key)
-    k_opt, k_act = jax.random.split(jax.random.fold_in(k_run, ib.t))
-    obs = ib.env_state.obs
-    ex = _choose_options(config, env, chain, dp_table, td3, ib.exec, obs, k_opt, evaluation=True)
-    acts = _policy_actions(config, td3, dyn, obs, ex.subgoal, k_act, False, 0.0, ex.option)
-    return ex, acts
-
-
-def _inband_record(config: Config, env, chain, ib: InbandState, ex: ExecState, nes,
-                   seed_axis=None) -> InbandState:
-    """After the in-band envs stepped to `nes`: end their options as `_eval_impl` does, write the
-    outcomes of finished episodes into the ring, restart those envs at the task start."""
-    E, K = config.inband_eval_envs, config.inband_window
-    ex = _push_traj(ex, nes.obs[:, :2])
-    done = nes.done > 0
-    ended, _ = _option_end(config, env, chain, ex, nes.obs[:, :2], nes.done)
-    ex = ex.replace(option=jnp.where(ended, NO_OPTION, ex.option))
-    ep_steps = ib.ep_steps + 1
-    success = done & (nes.info["success"] > 0)
-    # ring slots in order of finishing (env order within a step); when more than K finish in one
-    # step only the last K are kept, so no two writes share a slot
-    d = done.astype(jnp.int32)
-    n_new = jnp.sum(d)
-    rank = jnp.cumsum(d) - 1
-    slot = jnp.where(done & (rank >= n_new - K), (ib.episodes + rank) % K, K)
-    ring_success = ib.success.at[slot].set(success, mode="drop")
-    ring_steps = ib.steps.at[slot].set(ep_steps, mode="drop")
-
-    def restart(_):
-        k_reset, _ = jax.random.split(ib.key)
-        fresh = jax.vmap(env.reset)(jax.random.split(jax.random.fold_in(k_reset, ib.t + 1), E))
-        return (select_states(done, fresh, nes),
-                _where_rows(done, exec_init(config, fresh.obs, env.goal), ex))
-
-    es, ex = jax.lax.cond(_any_seed(jnp.any(done), seed_axis), restart, lambda _: (nes, ex), None)
-    return ib.replace(env_state=es, exec=ex, t=ib.t + 1, ep_steps=jnp.where(done, 0, ep_steps),
-                      success=ring_success, steps=ring_steps, episodes=ib.episodes + n_new)
-
-
-def inband_metrics(config: Config, ib: InbandState) -> Dict[str, jax.Array]:
-    """Scalars over the last K finished in-band episodes (the window; fewer before K finished).
-
-    inband/success_rate: share of the window that reached the goal (0 while none finished);
-    inband/steps_to_goal: mean length of the window's successful episodes (`episode_length`
-    while none succeeded); inband/episodes: finished so far; inband/window: episodes in the
-    window. Never NaN: inband/window = 0 says that the first two mean nothing yet."""
-    K = ib.success.shape[0]
-    n = jnp.minimum(ib.episodes, K)
-    valid = jnp.arange(K) < n        # slots fill from 0; all valid once K episodes finished
-    succ = valid & ib.success
-    n_succ = jnp.sum(succ.astype(jnp.int32))
-    f = lambda x: jnp.asarray(x, jnp.float32)
-    return {
-        "inband/success_rate": f(jnp.where(n > 0, n_succ / jnp.maximum(n, 1), 0.0)),
-        "inband/steps_to_goal": f(jnp.where(
-            n_succ > 0, jnp.sum(jnp.where(succ, ib.steps, 0)) / jnp.maximum(n_succ, 1),
-            config.episode_length)),
-        "inband/episodes": f(ib.episodes),
-        "inband/window": f(n),
-    }
-
-
-def _learn(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[str, jax.Array]]:
-    config = state.config
-    env = make_env(config)
-    tcfg = td3_config(config)
-    k_td3, k_dyn, k_pre = jax.random.split(key, 3)
-    metrics: Dict[str, jax.Array] = {}
-    if config.shared_critic:
-        td3, tm = td3_updates(tcfg, state.td3, td3_buffer(config, state.replay), k_td3,
-                              config.td3_updates,
-                              td3_sample_fn(config, env), sample_block=config.td3_sample_block,
-                              seed_axis=seed_axis)
-    else:
-        # the shared TD3's steps, shared among the options in proportion to the replay entries
-        # each collected; each learns on minibatches of its own transitions (HER within them)
-        td3, tm = td3_updates_per_option(tcfg, state.td3, state.replay, state.replay.data.option,
-                                         k_td3, config.td3_updates, td3_sample_fn(config, env),
-                                         sample_block=config.td3_sample_block,
-                                         seed_axis=seed_axis)
-    metrics.update({f"td3/{k}": v for k, v in tm.items()})
-    finite = {"td3": _all_finite(td3)}
-    dyn = state.dyn
-    counters = state.counters
-    if config.model_based:
-        warmup = counters.episodes < config.warmup_episodes
-        dyn = _dynamics_fit_normaliser(config, dyn, state.model_replay)
-        dyn, dm = _dynamics_updates(config, dyn, state.model_replay, k_dyn, config.dyn_updates)
-        # one longer burst once the warm-up data is in (the original's 50 epochs)
-        do_pre = (~warmup) & (~counters.warmup_done)
-        if config.dyn_pretrain_steps > 0:
-            def pretrain(d):
-                new = _dynamics_updates(config, d, state.model_replay, k_pre,
-                                        config.dyn_pretrain_steps)[0]
-                return jax.tree_util.tree_map(lambda a, b: jnp.where(do_pre, a, b), new, d)
-            dyn = jax.lax.cond(_any_seed(do_pre, seed_axis), pretrain, lambda d: d, dyn)
-        counters = counters.replace(warmup_done=counters.warmup_done | do_pre)
-        metrics.update({f"dynamics/{k}": v for k, v in dm.items()})
-        finite["dynamics"] = _all_finite(dyn)
-    chain, dp_table = state.chain, state.dp_table
-    if config.hierarchical:
-        chain = _refit(config, chain, seed_axis)
-        if config.frontier_parent:
-            from dscpp_jax import frontier
-            from dscpp_jax.options import mature_options
-            cand = _frontier_candidates(config, env, jax.random.fold_in(key, FRONTIER_KEY_SALT))
-            chain = mature_options(chain)
-            # growth leaves mature rows as they are, so this holds for the grown chain too
-            is_open = frontier.open_rows(frontier.frontier_probe(chain, cand,
-                                                                 config.frontier_radius),
-                                         config.frontier_min_open)
-            g0, p0 = frontier.gestation_row(chain), chain.parent
-            chain = _grow_chain(config, chain, jnp.asarray(env.start, jnp.float32), is_open)
-            g = frontier.gestation_row(chain)
-            gc = jnp.clip(g, 0)
-            metrics["frontier/retargeted"] = ((g >= 0) & (g == g0)
-                                              & (chain.parent[gc] != p0[gc])).astype(jnp.float32)
-            metrics["frontier/open_rows"] = jnp.sum(is_open).astype(jnp.float32)
-        else:
-            chain = _grow_chain(config, chain, jnp.asarray(env.start, jnp.float32))
-        if config.subgoal == "dp":
-            dp_table = _dp_value_table(config, chain, td3)
-        metrics.update(_chain_metrics(config, chain, env.start))
-        finite["classifiers"] = _all_finite(chain.clf)
-    for k, v in finite.items():
-        metrics[f"finite/{k}"] = v.astype(jnp.float32)
-    counters = counters.replace(iteration=counters.iteration + 1)
-    state = state.replace(td3=td3, dyn=dyn, chain=chain, dp_table=dp_table, counters=counters)
-    return state, metrics
-
-
-def _all_finite(tree) -> jax.Array:
-    leaves = [jnp.all(jnp.isfinite(x)) for x in jax.tree_util.tree_leaves(tree)
-              if hasattr(x, "dtype") and jnp.issubdtype(x.dtype, jnp.floating)]
-    return jnp.all(jnp.stack(leaves)) if leaves else jnp.ones((), bool)
+def learn(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[str, jax.Array]]:
+    """The learning half of an iteration (`learning.learn` on `state`'s env)."""
+    return learning.learn(state, make_env(state.config), key, seed_axis)
 
 
 def train_step_impl(state: TrainState, seed_axis: Optional[str] = None
                     ) -> Tuple[TrainState, Dict[str, jax.Array]]:
-    """One iteration (un-jitted; use `train_step`).
+    """One iteration (un-jitted; use `train_step`, whose docstring outlines it).
 
     ``seed_axis``: when this runs under ``jax.vmap(..., axis_name=seed_axis)`` over independent
     runs (a seed group), name that axis. Work that only some runs need (MPC during warm-up, resets,
@@ -780,8 +509,8 @@ def train_step_impl(state: TrainState, seed_axis: Optional[str] = None
     _check_state(state)
     key, k_roll, k_learn = jax.random.split(state.key, 3)
     state = state.replace(key=key)
-    state, m_roll = _rollout(state, k_roll, seed_axis)
-    state, m_learn = _learn(state, k_learn, seed_axis)
+    state, m_roll = rollout(state, k_roll, seed_axis)
+    state, m_learn = learn(state, k_learn, seed_axis)
     c = state.counters
     metrics = {**m_roll, **m_learn,
                "counters/env_steps": c.env_steps.astype(jnp.float32),
@@ -816,8 +545,29 @@ _train_step_jit = jax.jit(train_step_impl)
 
 
 def train_step(state: TrainState) -> Tuple[TrainState, Dict[str, jax.Array]]:
-    """One iteration, jitted (compiles once per Config); a TypeError for anything but a
-    TrainState, before JAX tries to trace it."""
+    """One iteration of DSC++ (or of a flat learner), jitted: `rollout`, then `learn`.
+
+    Algorithm outline (the paper's Algorithms 2 and 3, one function per line; B envs, T steps)::
+
+        rollout                        # Alg. 2 ROLLOUT: T steps of B envs in one lax.scan
+          acting.choose_options        #   l. 4     o = pi_O(s_t) where no option runs
+          acting.pick_subgoals         #   l. 5     g ~ beta_o (robust sampling; DP: Alg. 1)
+          acting.policy_actions        #   l. 6     a ~ pi_o(s | g): MPC (eq. 2) or TD3's actor
+          env.step
+          acting.push_traj             #   l. 6     the option's trajectory tau
+          acting.option_end            #   l. 7     s reached g in beta_o; timeout; episode end
+          acting.record_outcomes       #   l. 8-11  tau: positive or negative examples of o
+          replay_add                   #   l. 14    (s, o, a, s', g) into the HER replay
+        learn                          # after the scan
+          learning.update_policies     #   l. 14    TD3 + HER updates of pi_o and V(s | g)
+          learning.update_dynamics     #   f_xi for MPC (model-based algorithms)
+          learning.refit               #   l. 13    refit the options that received examples
+          learning.grow_chain          # Alg. 3 l. 7-9  a new option while no I_o holds s_0
+          learning.dp_value_table      # Alg. 1 CREATE-VALUE-TABLE (DP subgoals)
+
+    The paper refits and updates after each option execution; here they run once per iteration,
+    after B * T steps. Compiles once per Config; a TypeError for anything but a TrainState,
+    before JAX tries to trace it."""
     _check_state(state)
     return _train_step_jit(state)
 
@@ -825,7 +575,6 @@ def train_step(state: TrainState) -> Tuple[TrainState, Dict[str, jax.Array]]:
 for _name in ("lower", "trace", "eval_shape", "_cache_size", "clear_cache"):
     if hasattr(_train_step_jit, _name):
         setattr(train_step, _name, getattr(_train_step_jit, _name))
-"""Jitted `train_step(state) -> (state, metrics)`; compiles once per Config."""
 
 
 def train_step_group_impl(states: TrainState) -> Tuple[TrainState, Dict[str, jax.Array]]:
@@ -835,203 +584,16 @@ def train_step_group_impl(states: TrainState) -> Tuple[TrainState, Dict[str, jax
 
 
 # ------------------------------------------------------------------------------------------------
-# Thin adapters over the component modules (one place to follow their signatures)
+# Former private names, still used by scripts under experiments/
 # ------------------------------------------------------------------------------------------------
-def _her_max_segment(config: Config) -> int:
-    return config.option_timeout if config.hierarchical else config.episode_length
-
-
-def td3_buffer(config: Config, replay: Replay) -> Any:
-    """The replay as TD3's minibatches are drawn from it in one learning phase: indexed once
-    (``her.her_index``), so that each draw of ``td3_sample_fn`` is a few gathers."""
-    from dscpp_jax.her import her_index
-    return her_index(replay, _her_max_segment(config))
-
-
-def td3_sample_fn(config: Config, env: Any = None) -> Any:
-    """``sample_fn(key, replay, n) -> Transition`` for TD3: HER relabelling within an option's
-    segment (the episode's for the flat algorithms). ``replay`` is a Replay or its
-    :func:`td3_buffer` (the same draws, cheaper). ``env`` is unused (kept for callers)."""
-    max_seg = _her_max_segment(config)
-
-    def sample_fn(k, buf, n):
-        return _her_sample(k, buf, n, strategy=config.her_strategy,
-                           relabel_prob=config.her_relabel_prob, max_segment=max_seg,
-                           goal_tolerance=config.goal_tolerance)
-
-    return sample_fn
-
-
-def _her_sample(key, buf, n, **kw):
-    from dscpp_jax.her import her_sample
-    return her_sample(key, buf, n, **kw)
-
-
-def dyn_config(config: Config):
-    from dscpp_jax.dynamics import DynamicsConfig
-    return DynamicsConfig(ensemble_size=config.dyn_ensemble,
-                          hidden=(config.dyn_hidden, config.dyn_hidden), lr=config.dyn_lr,
-                          batch_size=config.dyn_batch_size)
-
-
-def _dynamics_init(key, obs_dim, act_dim, config: Config):
-    from dscpp_jax.dynamics import dynamics_init
-    return dynamics_init(key, obs_dim, act_dim, dyn_config(config))
-
-
-def _dynamics_fit_normaliser(config: Config, dyn, model_replay: Replay):
-    from dscpp_jax.dynamics import dynamics_fit_normaliser
-    obs, act, nxt = model_replay.data
-    return dynamics_fit_normaliser(dyn, obs, act, nxt, model_replay.valid, cfg=dyn_config(config))
-
-
-def _dynamics_updates(config: Config, dyn, model_replay: Replay, key, num_steps: int):
-    from dscpp_jax.dynamics import dynamics_train
-    obs, act, nxt = model_replay.data
-    dyn, m = dynamics_train(dyn_config(config), dyn, (obs, act, nxt, model_replay.valid), key,
-                            int(num_steps))
-    return dyn, {"loss": jnp.mean(m["loss"]), "loss_last": m["loss"][-1]}
-
-
-def mpc_config(config: Config):
-    from dscpp_jax.mpc import MPCConfig
-    return MPCConfig(num_samples=config.mpc_samples, horizon=config.mpc_horizon,
-                     discount=config.mpc_discount, goal_tolerance=config.goal_tolerance,
-                     use_value=config.uses_value_in_mpc, compute_dtype=config.mpc_dtype,
-                     backend=config.mpc_backend)
-
-
-def _mpc_actions(config: Config, dyn, key, obs, goals, value_fn, value_net=None):
-    from dscpp_jax.mpc import mpc_actions
-    return mpc_actions(mpc_config(config), dyn_config(config), dyn, key, obs, goals,
-                       value_fn=value_fn, value_net=value_net)
-
-
-def _value_net(config: Config, td3):
-    from dscpp_jax.mpc import td3_value_net
-    return td3_value_net(td3_config(config), td3)
-
-
-def chain_config(config: Config):
-    from dscpp_jax.options import ChainConfig
-    return ChainConfig(max_options=config.max_options, gestation=config.gestation,
-                       buffer_len=config.buffer_len, option_timeout=config.option_timeout,
-                       max_pos_traj=config.max_pos_traj, max_neg=config.max_neg,
-                       variant=config.classifier_variant, goal_tolerance=config.goal_tolerance,
-                       subgoal_tolerance=config.goal_tolerance, obs_dim=_obs_dim(config),
-                       svm_gamma=config.svm_gamma, svm_backend=config.svm_backend)
-
-
-def _chain_init(config: Config, goal):
-    from dscpp_jax.options import chain_init
-    return chain_init(chain_config(config), goal)
-
-
-def _dp_table_init(config: Config, chain):
-    from dscpp_jax.subgoals import dp_table_init
-    return dp_table_init(chain)
-
-
-def _select_option(config: Config, chain, xy, prefer_pessimistic: bool = False):
-    from dscpp_jax.options import select_option
-    return jax.vmap(lambda p: select_option(chain, p, prefer_pessimistic=prefer_pessimistic))(xy)
-
-
-def _value_fn(config: Config, td3, option=None):
-    """value_fn(obs (..., obs_dim), goal (2,) or (..., 2)) -> (...): V(s | g) of the shared TD3, or
-    with `config.shared_critic` off of option `option`'s (a scalar, traced or not)."""
-    tcfg = td3_config(config)
-    if not config.shared_critic:
-        if option is None:
-            raise ValueError("per-option critics (shared_critic=False): the value function needs "
-                             "the option whose critic to use")
-        td3 = td3_option(td3, jnp.asarray(option, jnp.int32))
-
-    def value_fn(s, g):
-        return td3_value(tcfg, td3, s, jnp.broadcast_to(g, s[..., :2].shape))
-    return value_fn
-
-
-def _pick_subgoals(config: Config, chain, dp_table, td3, options, obs, keys):
-    """(B, 2) subgoals for the options just chosen in B envs."""
-    from dscpp_jax import subgoals
-    if config.algo in ("dsc", "dual"):
-        # baseline DSC: each option pursues one target at a time (a key fixed per option and
-        # chain size), not a goal re-sampled at every execution
-        base = jax.random.PRNGKey(12345)
-        keys = jax.vmap(lambda o: jax.random.fold_in(jax.random.fold_in(base, o),
-                                                     chain.num_options))(options)
-        return jax.vmap(lambda k, o: subgoals.robust_subgoal(k, chain, o))(keys, options)
-    if config.subgoal == "dp":   # scored with the critic of the option that will pursue them
-        return jax.vmap(lambda o, s: subgoals.pick_subgoal(
-            dp_table, chain, o, s, _value_fn(config, td3, o)))(options, obs)
-    return jax.vmap(lambda k, o: subgoals.robust_subgoal(k, chain, o))(keys, options)
-
-
-def _option_terminates(config: Config, chain, options, xy, goal):
-    from dscpp_jax.options import option_terminates
-    o = jnp.clip(options, 0)
-    return jax.vmap(lambda oo, p: option_terminates(chain, oo, p, goal))(o, xy)
-
-
-def _record_outcomes(config: Config, chain, ex: ExecState, success, events):
-    from dscpp_jax.options import record_outcomes
-    T_ = ex.traj.shape[1]
-    tmask = jnp.arange(T_)[None, :] >= (T_ - ex.traj_count)[:, None]
-    return record_outcomes(chain, jnp.clip(ex.option, 0), success, ex.start_xy, ex.traj, tmask,
-                           events, start_obs=ex.start_obs)
-
-
-def _refit(config: Config, chain, seed_axis=None):
-    from dscpp_jax.options import refit
-    return refit(chain, seed_axis=seed_axis)
-
-
-def _grow_chain(config: Config, chain, start_xy, is_open=None):
-    from dscpp_jax.options import grow_chain
-    return grow_chain(chain, start_xy, is_open)
-
-
-def _diverse_starts(config: Config, env, k_start, B: int, front=None):
-    """(B, 2) start positions of episodes that begin at a diverse start: the env's sampler, or,
-    for a `frontier_start_prob` share of the envs (drawn with the same uniform that
-    `task_start_prob` uses: [task start | frontier | diverse]), a random candidate of the frontier
-    pool `front` = (candidates (M, 2), pool (M,) bool) when the pool holds any."""
-    starts = jax.vmap(env.sample_start)(jax.random.split(k_start, B))
-    if front is None:
-        return starts
-    u = jax.random.uniform(jax.random.fold_in(k_start, 1), (B,))
-    at_front = ((u >= config.task_start_prob)
-                & (u < config.task_start_prob + config.frontier_start_prob))
-    cand, pool = front
-    pick = jax.random.uniform(jax.random.fold_in(k_start, 2), (B,) + pool.shape)
-    pick = jnp.argmax(jnp.where(pool[None, :], pick, -1.0), axis=1)
-    return jnp.where((at_front & pool.any())[:, None], cand[pick], starts)
-
-
-def _frontier_candidates(config: Config, env, key):
-    """(M, 2) candidate states for the frontier probe: the env's diverse-start sampler."""
-    return jax.vmap(env.sample_start)(jax.random.split(key, config.frontier_candidates))
-
-
-def _frontier_pool(config: Config, env, chain, key):
-    """(candidates (M, 2), pool (M,) bool): where this iteration's frontier starts come from."""
-    from dscpp_jax import frontier
-    cand = _frontier_candidates(config, env, key)
-    return cand, frontier.start_pool(chain, frontier.frontier_probe(
-        chain, cand, config.frontier_radius, config.frontier_inner_radius))
-
-
-def _dp_value_table(config: Config, chain, td3):
-    from dscpp_jax.subgoals import dp_value_table
-    if config.shared_critic:
-        return dp_value_table(chain, _value_fn(config, td3), gamma=config.mpc_discount)
-    # each option's row of the table is valued with its own critic
-    return dp_value_table(chain, None, gamma=config.mpc_discount,
-                          option_value_fn=lambda k, s, g: _value_fn(config, td3, k)(s, g))
-
-
-def _chain_metrics(config: Config, chain, start_xy=None):
-    from dscpp_jax.options import chain_metrics
-    m = chain_metrics(chain, None if start_xy is None else jnp.asarray(start_xy, jnp.float32))
-    return {f"options/{k}": jnp.asarray(v, jnp.float32) for k, v in m.items()}
+_rollout = rollout
+_learn = learn
+_value_fn = acting.value_fn
+_value_net = acting.value_net
+_mpc_actions = acting.mpc_actions
+_dynamics_fit_normaliser = learning.fit_normaliser
+_dynamics_updates = learning.dynamics_updates
+_refit = learning.refit
+_grow_chain = learning.grow_chain
+_chain_metrics = acting.chain_metrics
+_all_finite = learning.all_finite

@@ -5,6 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from dscpp_jax import acting
 from dscpp_jax import frontier as F
 from dscpp_jax import options as O
 from dscpp_jax import trainer as T
@@ -79,7 +80,7 @@ def test_probe_refuses_bad_input(two_links):
 
 
 def _grow_with(chain, is_open):
-    return jax.jit(O.grow_chain)(chain, START_XY, jnp.asarray(is_open))
+    return jax.jit(F.grow_chain)(chain, START_XY, jnp.asarray(is_open))
 
 
 def test_a_link_whose_target_frontier_closed_is_retargeted(two_links):
@@ -124,17 +125,17 @@ def test_diverse_starts_take_the_frontier_share():
     cand = np.stack([np.arange(8) + 100.0, np.zeros(8)], -1).astype(np.float32)  # off the maze
     pool = np.array([0, 1, 0, 1, 0, 0, 0, 1], bool)
     key = jax.random.PRNGKey(3)
-    xy = np.asarray(T._diverse_starts(cfg, env, key, 64, (jnp.asarray(cand), jnp.asarray(pool))))
+    xy = np.asarray(acting.diverse_starts(cfg, env, key, 64, (jnp.asarray(cand), jnp.asarray(pool))))
     from_pool = xy[:, 0] >= 100
     assert set(xy[from_pool, 0]) <= {101.0, 103.0, 107.0}
     # the same uniform as task_start_prob: [task start | frontier | diverse] = [.25 | .5 | .25]
     u = np.asarray(jax.random.uniform(jax.random.fold_in(key, 1), (64,)))
     np.testing.assert_array_equal(from_pool, (u >= 0.25) & (u < 0.75))
     # the diverse ones are the sampler's, unchanged
-    plain = np.asarray(T._diverse_starts(cfg, env, key, 64))
+    plain = np.asarray(acting.diverse_starts(cfg, env, key, 64))
     np.testing.assert_array_equal(xy[~from_pool], plain[~from_pool])
     # an empty pool: every start is the sampler's
-    none = T._diverse_starts(cfg, env, key, 64, (jnp.asarray(cand), jnp.zeros(8, bool)))
+    none = acting.diverse_starts(cfg, env, key, 64, (jnp.asarray(cand), jnp.zeros(8, bool)))
     np.testing.assert_array_equal(np.asarray(none), plain)
 
 

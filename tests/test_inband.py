@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from dscpp_jax import checkpoint as ck
+from dscpp_jax import acting as A
 from dscpp_jax import trainer as T
 from dscpp_jax.config import Config
 from dscpp_jax.evaluate import evaluate_episodes
@@ -111,7 +112,7 @@ def test_inband_steps_follow_evaluate_inside_train_step(mb_runs):
 
 def test_inband_episodes_equal_evaluate_episodes(mb_runs):
     """The in-band act / step / record functions scanned over one episode length on a fixed state
-    reproduce `_eval_impl`'s episodes: positions step by step until each ends, then its success
+    reproduce `evaluate_episodes`' episodes: positions step by step until each ends, then its success
     and length; the ring and metrics hold the finished episodes in order of finishing. A wide goal
     tolerance makes some episodes succeed, at different lengths, and restart."""
     _, _, (s_on, _, _) = mb_runs
@@ -127,10 +128,10 @@ def test_inband_episodes_equal_evaluate_episodes(mb_runs):
     @jax.jit
     def roll(ib):
         def body(ib, _):
-            ex, acts = T._inband_act(cfg, env, s.chain, s.dp_table, s.td3, s.dyn, ib)
+            ex, acts = A.inband_act(cfg, env, s.chain, s.dp_table, s.td3, s.dyn, ib)
             nes = jax.vmap(env.step)(ib.env_state, acts)
             out = (nes.obs[:, :2], nes.done > 0, nes.info["success"] > 0)
-            return T._inband_record(cfg, env, s.chain, ib, ex, nes), out
+            return A.inband_record(cfg, env, s.chain, ib, ex, nes), out
         return jax.lax.scan(body, ib, None, length=cfg.episode_length)
 
     ib, (xy, done, succ) = jax.device_get(roll(T.inband_init(k, cfg)))

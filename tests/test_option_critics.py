@@ -11,6 +11,7 @@ import pytest
 
 import dscpp_jax
 from dscpp_jax import checkpoint as ck
+from dscpp_jax import acting as A
 from dscpp_jax import trainer as T
 from dscpp_jax.her import her_sample
 from dscpp_jax.replay import TrajStep, replay_add, replay_init
@@ -145,7 +146,7 @@ def test_each_env_acts_with_its_options_actor():
     obs = jax.random.normal(jax.random.key(1), (5, s.env_state.obs.shape[-1]))
     goals = jax.random.normal(jax.random.key(2), (5, 2))
     options = jnp.asarray([0, 1, 2, 3, T.NO_OPTION], jnp.int32)
-    acts = jax.jit(lambda td3: T._policy_actions(s.config, td3, None, obs, goals, None, False, 0.0,
+    acts = jax.jit(lambda td3: A.policy_actions(s.config, td3, None, obs, goals, None, False, 0.0,
                                                  options))(s.td3)
     for i, o in enumerate([0, 1, 2, 3, 0]):
         want = td3_act(tcfg, td3_option(s.td3, o).actor_params, obs[i:i + 1], goals[i:i + 1])[0]

@@ -319,7 +319,7 @@ def test_pallas_kernel_vmapped_batch_matches_xla_loop():
         return jax.vmap(lambda x, l, m, b: svm.fit_svc(x, l, m, gamma=GAMMA, class_weight=b, _inner=sv))(Xs, Ls, Ms, bal)
 
     got = fit(svm.Solver(backend="pallas", chunk=64, resident=128, steps=4, variadic=True))
-    want = fit(svm._resolve_inner(None, "xla"))
+    want = fit(svm.resolve_inner(None, "xla"))
     assert len(set(np.asarray(got.n_iter).tolist())) > 1
     for k, (X, _, _) in enumerate(data):
         assert_same_fit(*(jax.tree.map(lambda a: a[k], mo) for mo in (got, want)), grid(X, 60))

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 import dscpp_jax
+from dscpp_jax import acting as A
 from dscpp_jax import trainer as T
 from dscpp_jax.config import Config, preset
 from tests.trainer_fixtures import assert_trees_equal, tiny
@@ -264,8 +265,8 @@ def test_options_time_out_after_exactly_option_timeout_steps():
 
     @jax.jit
     def train_step_end(ex):
-        ex = T._push_traj(ex, xy)               # training: one step taken, then the end test
-        return ex, T._option_end(s.config, env, s.chain, ex, xy, jnp.zeros((B,)))[0]
+        ex = A.push_traj(ex, xy)               # training: one step taken, then the end test
+        return ex, A.option_end(s.config, env, s.chain, ex, xy, jnp.zeros((B,)))[0]
     ends = []
     for _ in range(cfg.option_timeout + 1):
         ex, ended = train_step_end(ex)
@@ -390,7 +391,7 @@ def _scripted_goal_option_outcomes(s):
     succ = np.arange(B) < 4
     start = np.where(succ[:, None], goal + rng.uniform(-1, 1, (B, 2)), rng.uniform(-1, 1, (B, 2)))
     traj = goal + rng.uniform(-1, 1, (B, cfg.buffer_len, 2))
-    obs = np.zeros((B, T._obs_dim(cfg)), np.float32)
+    obs = np.zeros((B, T.observation_size(cfg)), np.float32)
     obs[:, :2] = start
     return O.record_outcomes(s.chain, np.full((B,), O.GOAL, np.int32), succ,
                              start.astype(np.float32), traj.astype(np.float32),

@@ -1,0 +1,224 @@
+"""Learning: what one DSC++ iteration learns from the experience its rollout collected.
+
+In the paper's words (Algorithm 2, lines 13-14, at the end of an iteration rather than after
+every execution; Algorithm 3, lines 7-9; Algorithm 1)::
+
+    td3, m  = update_policies(...)   # Alg. 2 l. 14: TD3 + HER on the shared replay
+    dyn, m  = update_dynamics(...)   # f_xi on the model replay (model-based algorithms)
+    chain   = refit(...)             # Alg. 2 l. 13: refit the classifiers of the options that
+                                     #   received examples
+    chain   = grow_chain(...)        # Alg. 3 l. 7-9: maturity; a new option while no option's
+                                     #   initiation set holds the start state
+    table   = dp_value_table(...)    # Alg. 1 CREATE-VALUE-TABLE (DP subgoals only)
+
+`learn` runs them in that order on a `trainer.TrainState`. Every function is pure and jit-able;
+``seed_axis`` names the vmap axis of a seed group, so that work only some runs need runs when any
+run needs it instead of on every call.
+"""
+from __future__ import annotations
+
+from typing import Any, Dict, Tuple
+
+import jax
+import jax.numpy as jnp
+
+from dscpp_jax import frontier
+from dscpp_jax.acting import FRONTIER_KEY_SALT, any_seed, chain_metrics, dyn_config, \
+    frontier_candidates, td3_config, value_fn
+from dscpp_jax.config import Config
+from dscpp_jax.dynamics import dynamics_fit_normaliser, dynamics_init, dynamics_train
+from dscpp_jax.her import her_index, her_sample
+from dscpp_jax.options import grow_chain as _grow_chain, mature_options, refit as _refit
+from dscpp_jax.replay import Replay
+from dscpp_jax.subgoals import dp_value_table as _dp_value_table
+from dscpp_jax.td3 import td3_updates, td3_updates_per_option
+
+
+# ------------------------------------------------------------------------------------------------
+# Option policies: TD3 + HER
+# ------------------------------------------------------------------------------------------------
+def her_max_segment(config: Config) -> int:
+    """The longest HER segment: an option's execution (the episode for the flat algorithms)."""
+    return config.option_timeout if config.hierarchical else config.episode_length
+
+
+def td3_buffer(config: Config, replay: Replay) -> Any:
+    """The replay as TD3's minibatches are drawn from it in one learning phase: indexed once
+    (``her.her_index``), so that each draw of ``td3_sample_fn`` is a few gathers."""
+    return her_index(replay, her_max_segment(config))
+
+
+def td3_sample_fn(config: Config, env: Any = None) -> Any:
+    """``sample_fn(key, replay, n) -> Transition`` for TD3: HER relabelling within an option's
+    segment (the episode's for the flat algorithms). ``replay`` is a Replay or its
+    :func:`td3_buffer` (the same draws, cheaper). ``env`` is unused (kept for callers)."""
+    max_seg = her_max_segment(config)
+
+    def sample_fn(k, buf, n):
+        return her_sample(k, buf, n, strategy=config.her_strategy,
+                          relabel_prob=config.her_relabel_prob, max_segment=max_seg,
+                          goal_tolerance=config.goal_tolerance)
+
+    return sample_fn
+
+
+def update_policies(config: Config, td3, replay: Replay, key, seed_axis=None
+                    ) -> Tuple[Any, Dict[str, jax.Array]]:
+    """`config.td3_updates` TD3 steps on HER-relabelled minibatches of the replay: the shared
+    goal-conditioned TD3, or with `config.shared_critic` off one per option. Returns (td3,
+    ``td3/*`` metrics)."""
+    tcfg = td3_config(config)
+    if config.shared_critic:
+        td3, tm = td3_updates(tcfg, td3, td3_buffer(config, replay), key, config.td3_updates,
+                              td3_sample_fn(config), sample_block=config.td3_sample_block,
+                              seed_axis=seed_axis)
+    else:
+        # the shared TD3's steps, shared among the options in proportion to the replay entries
+        # each collected; each learns on minibatches of its own transitions (HER within them)
+        td3, tm = td3_updates_per_option(tcfg, td3, replay, replay.data.option, key,
+                                         config.td3_updates, td3_sample_fn(config),
+                                         sample_block=config.td3_sample_block,
+                                         seed_axis=seed_axis)
+    return td3, {f"td3/{k}": v for k, v in tm.items()}
+
+
+# ------------------------------------------------------------------------------------------------
+# The dynamics model f_xi (model-based algorithms)
+# ------------------------------------------------------------------------------------------------
+def init_dynamics(key, obs_dim: int, act_dim: int, config: Config):
+    """A fresh dynamics ensemble for `config`."""
+    return dynamics_init(key, obs_dim, act_dim, dyn_config(config))
+
+
+def fit_normaliser(config: Config, dyn, model_replay: Replay):
+    """The model's input and output statistics refit on the model replay."""
+    obs, act, nxt = model_replay.data
+    return dynamics_fit_normaliser(dyn, obs, act, nxt, model_replay.valid, cfg=dyn_config(config))
+
+
+def dynamics_updates(config: Config, dyn, model_replay: Replay, key, num_steps: int):
+    """`num_steps` Adam steps of the model on the model replay. Returns (dyn, {loss,
+    loss_last})."""
+    obs, act, nxt = model_replay.data
+    dyn, m = dynamics_train(dyn_config(config), dyn, (obs, act, nxt, model_replay.valid), key,
+                            int(num_steps))
+    return dyn, {"loss": jnp.mean(m["loss"]), "loss_last": m["loss"][-1]}
+
+
+def update_dynamics(config: Config, dyn, model_replay: Replay, counters, key, key_pretrain,
+                    seed_axis=None):
+    """The iteration's model steps, and once the warm-up data is in, one longer burst of
+    `config.dyn_pretrain_steps` (the original's 50 epochs on the random rollouts). Returns
+    (dyn, counters with ``warmup_done``, ``dynamics/*`` metrics)."""
+    warmup = counters.episodes < config.warmup_episodes
+    dyn = fit_normaliser(config, dyn, model_replay)
+    dyn, dm = dynamics_updates(config, dyn, model_replay, key, config.dyn_updates)
+    do_pre = (~warmup) & (~counters.warmup_done)
+    if config.dyn_pretrain_steps > 0:
+        def pretrain(d):
+            new = dynamics_updates(config, d, model_replay, key_pretrain,
+                                   config.dyn_pretrain_steps)[0]
+            return jax.tree_util.tree_map(lambda a, b: jnp.where(do_pre, a, b), new, d)
+        dyn = jax.lax.cond(any_seed(do_pre, seed_axis), pretrain, lambda d: d, dyn)
+    counters = counters.replace(warmup_done=counters.warmup_done | do_pre)
+    return dyn, counters, {f"dynamics/{k}": v for k, v in dm.items()}
+
+
+# ------------------------------------------------------------------------------------------------
+# The skill chain
+# ------------------------------------------------------------------------------------------------
+def refit(config: Config, chain, seed_axis=None):
+    """Refit the initiation classifiers of the options that received examples
+    (`options.refit`)."""
+    return _refit(chain, seed_axis=seed_axis)
+
+
+def grow_chain(config: Config, chain, start_xy, is_open=None):
+    """Maturity and chain growth (`options.grow_chain`); with `is_open` (the rows whose frontier
+    is open) the frontier's parents and re-targeting (`frontier.grow_chain`)."""
+    if is_open is None:
+        return _grow_chain(chain, start_xy)
+    return frontier.grow_chain(chain, start_xy, is_open)
+
+
+def dp_value_table(config: Config, chain, td3):
+    """Algorithm 1's value table over the chain, valued with the shared critic or each option's
+    own (`subgoals.dp_value_table`)."""
+    if config.shared_critic:
+        return _dp_value_table(chain, value_fn(config, td3), gamma=config.mpc_discount)
+    # each option's row of the table is valued with its own critic
+    return _dp_value_table(chain, None, gamma=config.mpc_discount,
+                           option_value_fn=lambda k, s, g: value_fn(config, td3, k)(s, g))
+
+
+def update_chain(config: Config, env, chain, td3, dp_table, key, seed_axis=None):
+    """Refit, grow (with the frontier's parents when `config.frontier_parent` is set; its
+    candidates drawn with `key` folded with `FRONTIER_KEY_SALT`) and, for DP subgoals, rebuild
+    the value table. Returns (chain, dp_table, ``frontier/*`` and ``options/*`` metrics)."""
+    metrics: Dict[str, jax.Array] = {}
+    start = jnp.asarray(env.start, jnp.float32)
+    chain = refit(config, chain, seed_axis)
+    if config.frontier_parent:
+        cand = frontier_candidates(config, env, jax.random.fold_in(key, FRONTIER_KEY_SALT))
+        chain = mature_options(chain)
+        # growth leaves mature rows as they are, so this holds for the grown chain too
+        is_open = frontier.open_rows(frontier.frontier_probe(chain, cand, config.frontier_radius),
+                                     config.frontier_min_open)
+        g0, p0 = frontier.gestation_row(chain), chain.parent
+        chain = grow_chain(config, chain, start, is_open)
+        g = frontier.gestation_row(chain)
+        gc = jnp.clip(g, 0)
+        metrics["frontier/retargeted"] = ((g >= 0) & (g == g0)
+                                          & (chain.parent[gc] != p0[gc])).astype(jnp.float32)
+        metrics["frontier/open_rows"] = jnp.sum(is_open).astype(jnp.float32)
+    else:
+        chain = grow_chain(config, chain, start)
+    if config.subgoal == "dp":
+        dp_table = dp_value_table(config, chain, td3)
+    metrics.update(chain_metrics(config, chain, env.start))
+    return chain, dp_table, metrics
+
+
+# ------------------------------------------------------------------------------------------------
+# One learning phase
+# ------------------------------------------------------------------------------------------------
+def all_finite(tree) -> jax.Array:
+    """Scalar bool: every floating leaf of `tree` is finite."""
+    leaves = [jnp.all(jnp.isfinite(x)) for x in jax.tree_util.tree_leaves(tree)
+              if hasattr(x, "dtype") and jnp.issubdtype(x.dtype, jnp.floating)]
+    return jnp.all(jnp.stack(leaves)) if leaves else jnp.ones((), bool)
+
+
+def learn(state: Any, env, key, seed_axis=None) -> Tuple[Any, Dict[str, jax.Array]]:
+    """The learning half of one iteration on a `trainer.TrainState` (`env`: its env): policies,
+    dynamics, chain, in that order; counts the iteration. Returns (state, metrics: ``td3/*``,
+    ``dynamics/*``, ``frontier/*``, ``options/*``, ``finite/*``)."""
+    config = state.config
+    k_td3, k_dyn, k_pre = jax.random.split(key, 3)
+    metrics: Dict[str, jax.Array] = {}
+
+    # UPDATE OPTION POLICIES (TD3 + HER)
+    td3, tm = update_policies(config, state.td3, state.replay, k_td3, seed_axis)
+    metrics.update(tm)
+    finite = {"td3": all_finite(td3)}
+
+    # UPDATE THE DYNAMICS MODEL
+    dyn, counters = state.dyn, state.counters
+    if config.model_based:
+        dyn, counters, dm = update_dynamics(config, dyn, state.model_replay, counters, k_dyn,
+                                            k_pre, seed_axis)
+        metrics.update(dm)
+        finite["dynamics"] = all_finite(dyn)
+
+    # REFIT CLASSIFIERS, GROW THE CHAIN, REBUILD THE DP TABLE
+    chain, dp_table = state.chain, state.dp_table
+    if config.hierarchical:
+        chain, dp_table, cm = update_chain(config, env, chain, td3, dp_table, key, seed_axis)
+        metrics.update(cm)
+        finite["classifiers"] = all_finite(chain.clf)
+
+    for k, v in finite.items():
+        metrics[f"finite/{k}"] = v.astype(jnp.float32)
+    counters = counters.replace(iteration=counters.iteration + 1)
+    state = state.replace(td3=td3, dyn=dyn, chain=chain, dp_table=dp_table, counters=counters)
+    return state, metrics
