@@ -15,7 +15,7 @@ Many seeds in one jitted program, sharded over all devices (and hosts): see
     states, metrics = dscpp_jax.train_step_group(states)  # metrics: (4,) per key
     summaries, result = dscpp_jax.evaluate_group(states)  # one summary dict per seed
 """
-import envs  # noqa: F401  (first: imports MuJoCo MJX without the missing-Warp notice)
+from dscpp_jax import envs  # noqa: F401  (first: imports MuJoCo MJX without the missing-Warp notice)
 from dscpp_jax.config import ALGOS, SUBGOALS, Config, preset
 from dscpp_jax.evaluate import EvalResult, Policy, evaluate, evaluate_episodes, make_policy
 from dscpp_jax.seed_group import evaluate_group, init_group, seed_mesh, seed_state, \

@@ -36,7 +36,7 @@ from dscpp_jax.mpc import MPCConfig, mpc_actions as _mpc_shooting, td3_value_net
 from dscpp_jax.options import chain_metrics as _chain_metrics, option_terminates, record_outcomes \
     as _record_outcomes, select_option
 from dscpp_jax.td3 import TD3Config, td3_act, td3_explore, td3_option, td3_perturb, td3_value
-from envs.goal_env import select_states
+from dscpp_jax.envs.goal_env import select_states
 
 PyTree = Any
 NO_OPTION = -1

@@ -56,7 +56,7 @@ def config_from_args(args) -> Config:
     cfg.validate()
     from dscpp_jax.trainer import resolve_physics   # record the back end that will run
     cfg = resolve_physics(cfg)
-    import envs  # unknown env names fail here, before anything is compiled
+    from dscpp_jax import envs  # unknown env names fail here, before anything is compiled
     envs.make(cfg.env)
     return cfg
 
@@ -1133,7 +1133,7 @@ def runs_on_warp(args) -> bool:
     physics = physics or "auto"
     if physics != "auto":
         return physics == "warp"
-    from envs.ant_maze import warp_available
+    from dscpp_jax.envs.ant_maze import warp_available
     return warp_available()
 
 

@@ -21,7 +21,7 @@ from dscpp_jax import acting as A
 from dscpp_jax import trainer as T
 from dscpp_jax.config import Config
 from dscpp_jax.td3 import td3_random_prob
-from envs.goal_env import select_states
+from dscpp_jax.envs.goal_env import select_states
 
 
 @flax.struct.dataclass

@@ -34,7 +34,7 @@ import jax.numpy as jnp
 
 from dscpp_jax.replay import (Replay, Transition, replay_gather, replay_sample_index,
                               replay_valid_positions)
-from envs.goals import goal_reached
+from dscpp_jax.envs.goals import goal_reached
 
 STRATEGIES = ("final", "future", "none")
 

@@ -41,7 +41,7 @@ import flax.struct
 import jax
 import jax.numpy as jnp
 
-import envs
+from dscpp_jax import envs
 from dscpp_jax import acting, learning
 # GLOBAL_OPTION, GOAL_OPTION, dyn_config and mpc_config are re-exported: part of trainer's API
 from dscpp_jax.acting import (FRONTIER_KEY_SALT, GLOBAL_OPTION, GOAL_OPTION, NO_OPTION,  # noqa
@@ -55,8 +55,8 @@ from dscpp_jax.options import ChainConfig, chain_init
 from dscpp_jax.replay import Replay, TrajStep, replay_add, replay_init
 from dscpp_jax.subgoals import dp_table_init
 from dscpp_jax.td3 import TD3State, td3_init, td3_init_per_option, td3_random_prob
-from envs.ant_maze import warp_available
-from envs.goal_env import join_states, select_state, select_states, split_states
+from dscpp_jax.envs.ant_maze import warp_available
+from dscpp_jax.envs.goal_env import join_states, select_state, select_states, split_states
 
 PyTree = Any
 

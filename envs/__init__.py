@@ -12,14 +12,14 @@ from __future__ import annotations
 
 import dataclasses
 
-from envs._quiet_import import import_quietly
+from dscpp_jax.envs._quiet_import import import_quietly
 
 import_quietly("mujoco.mjx")  # first, before brax imports it: no notice about the optional Warp back end
 
-from envs.goals import (EPISODE_LENGTH, GOAL_TOLERANCE, achieved_goal, goal_reached,  # noqa: F401
+from dscpp_jax.envs.goals import (EPISODE_LENGTH, GOAL_TOLERANCE, achieved_goal, goal_reached,  # noqa: F401
                         goal_reward)
-from envs.maze_layout import BUILTIN_MAPS, MazeLayout, get_layout, parse_map  # noqa: F401
-from envs.point_maze import PointConfig, PointMazeEnv  # noqa: F401
+from dscpp_jax.envs.maze_layout import BUILTIN_MAPS, MazeLayout, get_layout, parse_map  # noqa: F401
+from dscpp_jax.envs.point_maze import PointConfig, PointMazeEnv  # noqa: F401
 
 ANT_NAMES = tuple(BUILTIN_MAPS)  # u_maze, medium, large, four_rooms, ant_reacher
 POINT_NAMES = tuple("point_" + n for n in ANT_NAMES)
@@ -33,7 +33,7 @@ def _build(layout: MazeLayout, robot: str, overrides: dict):
     if robot == "point":
         cfg_cls, env_cls = PointConfig, PointMazeEnv
     else:
-        from envs.ant_maze import AntConfig, AntMazeEnv
+        from dscpp_jax.envs.ant_maze import AntConfig, AntMazeEnv
         cfg_cls, env_cls = AntConfig, AntMazeEnv
     fields = {f.name for f in dataclasses.fields(cfg_cls)}
     bad = sorted(set(overrides) - fields)

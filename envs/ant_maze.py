@@ -35,9 +35,9 @@ import numpy as np
 from brax.envs.base import State
 from mujoco import mjx
 
-from envs import goals
-from envs.goal_env import GoalMazeEnv
-from envs.maze_layout import MazeLayout
+from dscpp_jax.envs import goals
+from dscpp_jax.envs.goal_env import GoalMazeEnv
+from dscpp_jax.envs.maze_layout import MazeLayout
 
 # Actuator order of the D4RL ant.
 ACTUATED_JOINTS = ("hip_4", "ankle_4", "hip_1", "ankle_1", "hip_2", "ankle_2", "hip_3", "ankle_3")
@@ -384,7 +384,7 @@ class AntMazeEnv(GoalMazeEnv):
             with wp.ScopedStream(stream) if stream is not None else contextlib.nullcontext():
                 m, d = self.warp_one_world()
                 if workers != 1:
-                    from envs.warp_kernels import load_modules, modules_launched
+                    from dscpp_jax.envs.warp_kernels import load_modules, modules_launched
                     try:
                         mods = modules_launched(lambda: mjwarp.step(m, d))
                     except Exception as e:  # noqa: BLE001 - the step below still builds them

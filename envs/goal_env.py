@@ -7,7 +7,7 @@ termination and info bookkeeping of a step.
 import jax
 import jax.numpy as jnp
 
-from envs.maze_layout import MazeLayout
+from dscpp_jax.envs.maze_layout import MazeLayout
 
 
 def select_state(pred, on_true, on_false):

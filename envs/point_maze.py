@@ -15,9 +15,9 @@ import jax
 import jax.numpy as jnp
 from brax.envs.base import State
 
-from envs import goals
-from envs.goal_env import GoalMazeEnv
-from envs.maze_layout import MazeLayout
+from dscpp_jax.envs import goals
+from dscpp_jax.envs.goal_env import GoalMazeEnv
+from dscpp_jax.envs.maze_layout import MazeLayout
 
 
 @dataclasses.dataclass(frozen=True)

@@ -23,8 +23,8 @@ import mujoco
 import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
-import envs  # noqa: E402
-from envs.ant_maze import AntConfig, ant_mjcf  # noqa: E402
+from dscpp_jax import envs  # noqa: E402
+from dscpp_jax.envs.ant_maze import AntConfig, ant_mjcf  # noqa: E402
 
 VARIANTS = {
     # the env before soft contacts: MuJoCo's default solimp, explicit joint damping

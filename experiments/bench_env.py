@@ -27,7 +27,7 @@ import jax.numpy as jnp  # noqa: E402
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
-import envs  # noqa: E402
+from dscpp_jax import envs  # noqa: E402
 
 DEFAULT_LAYOUTS = "u_maze,four_rooms,medium,large,ant_reacher"
 DEFAULT_BATCHES = "1,16,256,1024,4096,16384"

@@ -32,8 +32,8 @@ import warp as wp
 wp.config.kernel_cache_dir = {cache!r}
 wp.config.quiet = True
 wp.init()
-import envs
-from envs.warp_kernels import default_workers, modules_launched
+from dscpp_jax import envs
+from dscpp_jax.envs.warp_kernels import default_workers, modules_launched
 from mujoco.mjx.third_party import mujoco_warp as mjwarp
 env = envs.make({env!r}, physics="warp", warp_worlds=1)
 workers = {workers} or default_workers()

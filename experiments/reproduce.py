@@ -1459,7 +1459,7 @@ PAPER_ENVS = FIG6_MAZES + ("ant_reacher",)
 
 def check_args(args) -> None:
     """Every argument a train call or figure would trip over later, as one clear ValueError now."""
-    import envs
+    from dscpp_jax import envs
     for flag, text, known in (("--algos", args.algos, FIG6_ALGOS + ("dual",)),
                               ("--mazes", args.mazes, FIG6_MAZES)):
         if text is None:

@@ -298,7 +298,7 @@ def test_deterministic_default_follows_the_physics(tmp_path, monkeypatch):
     not repeat either way), for every learner: the physics from --physics, --set physics=, or the
     saved config of --resume and --run ("auto" means Warp where warp-lang is installed).
     Point-mass twins stay deterministic."""
-    import envs.ant_maze
+    from dscpp_jax.envs import ant_maze
     from dscpp_jax.cli import build_parser, deterministic_default
     p = build_parser()
 
@@ -315,7 +315,7 @@ def test_deterministic_default_follows_the_physics(tmp_path, monkeypatch):
         assert default("train", "--env", "u_maze", "--physics", "jax", "--set", "physics=warp", *a)
     assert not default("train", "--env", "u_maze", "--physics", "warp")   # --algo's default
     for installed in (True, False):
-        monkeypatch.setattr(envs.ant_maze, "warp_available", lambda: installed)
+        monkeypatch.setattr(ant_maze, "warp_available", lambda: installed)
         assert default("train", "--env", "u_maze") is not installed           # physics auto
         assert default("train", "--env", "four_rooms", "--physics", "auto") is not installed
     for physics, algo, det in (("warp", "mf_dscpp", False), ("jax", "mf_dscpp", True),

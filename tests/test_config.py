@@ -120,7 +120,7 @@ def test_known_preset_values():
 
 
 def test_env_names_are_those_envs_make_builds():
-    import envs
+    from dscpp_jax import envs
     assert ENV_NAMES == tuple(envs.ENV_NAMES)
 
 

@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import envs
+from dscpp_jax import envs
 from dscpp_jax.dynamics import (DynamicsConfig, dynamics_fit_normaliser, dynamics_fold, dynamics_init,
                                 dynamics_metrics, dynamics_predict, dynamics_predict_all, dynamics_train,
                                 dynamics_update, folded_step)

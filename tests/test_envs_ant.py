@@ -11,8 +11,8 @@ import mujoco
 import numpy as np
 import pytest
 
-import envs
-from envs.ant_maze import body_points, warp_available
+from dscpp_jax import envs
+from dscpp_jax.envs.ant_maze import body_points, warp_available
 
 B, T = 4, 25  # envs per batch, env steps per rollout (>= 20 for the MJX-vs-C check)
 # Penetration allowed for points on the centre lines of the ant's capsules / sphere centres

@@ -4,8 +4,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import envs
-from envs.maze_layout import get_layout, parse_map
+from dscpp_jax import envs
+from dscpp_jax.envs.maze_layout import get_layout, parse_map
 
 TABLE = {  # name: (cell size, start, goal, number of merged wall boxes)
     "u_maze": (4.0, (0, 0), (0, 8), 5),

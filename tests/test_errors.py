@@ -326,7 +326,7 @@ def test_python_api_and_env_constructors_reject_bad_arguments(trained):
     import jax
 
     import dscpp_jax
-    import envs
+    from dscpp_jax import envs
     from dscpp_jax.cli import load_run
     cfg, state = load_run(trained)
     with pytest.raises(TypeError, match="needs a dscpp_jax.Config"):

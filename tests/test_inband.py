@@ -305,7 +305,7 @@ def test_warp_inband_envs_share_the_training_physics_batch():
     worlds concatenated, split again after the step). Each world steps alone on Warp, so training
     state, in-band state and metrics equal those of the path with a second physics step; in a
     two-seed group each seed matches its separate run."""
-    from envs.ant_maze import warp_available
+    from dscpp_jax.envs.ant_maze import warp_available
     if not warp_available():
         pytest.skip("warp-lang is not installed")
     from dscpp_jax import seed_group as SG

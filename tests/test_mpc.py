@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import envs
+from dscpp_jax import envs
 from dscpp_jax.dynamics import DynamicsConfig, dynamics_fit_normaliser, dynamics_init, dynamics_train
 from dscpp_jax import mpc as mpc_lib
 from dscpp_jax.dynamics import dynamics_fold

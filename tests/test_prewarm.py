@@ -71,8 +71,8 @@ def test_loops_compile_ahead_and_wait_for_the_kernel_build(tmp_path, monkeypatch
 
 
 def test_build_warp_kernels_steps_the_model_outside_jax():
-    from envs.ant_maze import warp_available
-    import envs
+    from dscpp_jax.envs.ant_maze import warp_available
+    from dscpp_jax import envs
     assert envs.make("u_maze", physics="jax").build_warp_kernels("cpu") is False
     if not warp_available():
         pytest.skip("warp-lang is not installed")

@@ -275,10 +275,10 @@ def test_bench_seeds_deterministic_default_is_train_s(monkeypatch):
     """The benchmark sets the switch once for all its algorithms, as `train` would: off where the
     ant physics is MuJoCo Warp, on otherwise, unless asked."""
     import argparse
-    import envs.ant_maze
+    from dscpp_jax.envs import ant_maze
     from dscpp_jax.cli import deterministic_choice
     bench_seeds = _experiment("bench_seeds")
-    monkeypatch.setattr(envs.ant_maze, "warp_available", lambda: True)
+    monkeypatch.setattr(ant_maze, "warp_available", lambda: True)
 
     def det(*argv):
         p = argparse.ArgumentParser()
@@ -426,7 +426,7 @@ def test_warp_physics_group_equals_separate_runs():
     """MuJoCo Warp's Data batches itself under vmap (its contact buffers are shared by all worlds of
     the group, not split per seed): a group of two ant seeds on Warp steps and evaluates, and each
     seed matches its separate run."""
-    from envs.ant_maze import warp_available
+    from dscpp_jax.envs.ant_maze import warp_available
     if not warp_available():
         pytest.skip("warp-lang is not installed")
     cfg = _warp_config()
@@ -445,7 +445,7 @@ def test_warp_group_seed_directory_evaluates(tmp_path):
     """A seed directory of a group trained on MuJoCo Warp restores from the group checkpoint (whose
     contact buffers are shared by the group, not split per seed) and evaluates, as `eval --run
     GROUP/s1` and `video --run GROUP/s1` do."""
-    from envs.ant_maze import warp_available
+    from dscpp_jax.envs.ant_maze import warp_available
     if not warp_available():
         pytest.skip("warp-lang is not installed")
     from dscpp_jax import group_train

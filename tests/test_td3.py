@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import envs
+from dscpp_jax import envs
 from dscpp_jax import td3 as td3_module
 from dscpp_jax.her import her_sample
 from dscpp_jax.replay import Transition, TrajStep, replay_add, replay_init

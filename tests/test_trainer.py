@@ -95,7 +95,7 @@ def test_presets_keep_paper_constants():
     assert preset("fast", "medium", "mb_dscpp", frontier_start_prob=0.0).inert_fields() == {
         "frontier_inner_radius"}
     # every preset of every env and algorithm is a valid config as it comes
-    import envs
+    from dscpp_jax import envs
     from dscpp_jax.config import ALGOS
     for name in ("fast", "paper"):
         for env in envs.ENV_NAMES:

@@ -120,7 +120,7 @@ def test_record_here_render_elsewhere_equals_direct_render(tmp_path, gl):
 def test_ant_video_draws_the_maze_goal_and_option_colour(tmp_path, gl):
     import mujoco
 
-    import envs
+    from dscpp_jax import envs
     env = envs.make("u_maze")
     d = mujoco.MjData(env.mj_model)
     env.set_proxies_c(d)

@@ -6,7 +6,7 @@ import threading
 import numpy as np
 import pytest
 
-from envs.ant_maze import warp_available
+from dscpp_jax.envs.ant_maze import warp_available
 
 pytestmark = pytest.mark.skipif(not warp_available(), reason="warp-lang is not installed")
 
@@ -15,7 +15,7 @@ def _model_and_data():
     import warp as wp
     from mujoco.mjx.third_party import mujoco_warp as mjwarp
 
-    import envs
+    from dscpp_jax import envs
     env = envs.make("u_maze", physics="warp", warp_worlds=1)
     with wp.ScopedDevice("cpu"):
         m, d = env.warp_one_world()
@@ -47,7 +47,7 @@ def _loads_during(fn):
 def test_dry_run_finds_the_step_modules_and_load_modules_leaves_nothing_to_build():
     import warp as wp
 
-    from envs.warp_kernels import load_modules, modules_launched
+    from dscpp_jax.envs.warp_kernels import load_modules, modules_launched
     mjwarp, m, d = _model_and_data()
     with wp.ScopedDevice("cpu"):
         qpos, time0 = d.qpos.numpy().copy(), d.time.numpy().copy()
@@ -78,7 +78,7 @@ def test_dry_run_finds_the_step_modules_and_load_modules_leaves_nothing_to_build
 def test_dry_run_is_confined_to_its_thread_and_restores_warp():
     import warp as wp
 
-    from envs import warp_kernels as W
+    from dscpp_jax.envs import warp_kernels as W
     from tests.warp_kernel_fixture import add_one
     orig = (wp.Module.load, wp.capture_while, wp.capture_if)
     mine = wp.zeros(4, dtype=float, device="cpu")
@@ -123,7 +123,7 @@ def test_build_covers_the_jax_step_of_many_worlds():
     import jax
     import jax.numpy as jnp
 
-    import envs
+    from dscpp_jax import envs
     from warp._src.context import user_modules
     env = envs.make("u_maze", physics="warp", warp_worlds=3)
     for mod in list(user_modules.values()):   # what earlier tests loaded in this process
@@ -147,7 +147,7 @@ def test_warp_one_world_carries_the_env_solver_options_and_sizes():
 
     import warp as wp
 
-    import envs
+    from dscpp_jax import envs
     env = envs.make("u_maze", physics="warp", warp_worlds=1)
     with wp.ScopedDevice("cpu"):
         m, d = env.warp_one_world()
@@ -170,7 +170,7 @@ def test_dry_run_answers_get_suggested_block_size_on_cuda_without_loading(monkey
     on the CPU device taken for a CUDA one."""
     import warp as wp
 
-    from envs import warp_kernels
+    from dscpp_jax.envs import warp_kernels
     from tests.warp_kernel_fixture import add_one
     monkeypatch.setattr(warp_kernels, "_is_cuda", lambda device: True)
     answers = []
@@ -184,8 +184,8 @@ def test_dry_run_answers_get_suggested_block_size_on_cuda_without_loading(monkey
 
 
 def test_build_falls_back_to_the_plain_step_when_the_dry_run_fails(monkeypatch):
-    import envs
-    from envs import warp_kernels
+    from dscpp_jax import envs
+    from dscpp_jax.envs import warp_kernels
 
     def broken(fn):
         raise RuntimeError("dry run broke")
