@@ -31,6 +31,8 @@ import jax.numpy as jnp
 import numpy as np
 import orbax.checkpoint as ocp
 
+from dscpp_jax.run_logging import os_error_fix
+
 CKPT_DIR = "checkpoints"
 
 
@@ -44,11 +46,29 @@ class _NoFalseWaitWarning(logging.Filter):
         return not str(record.msg).startswith("Waiting for previous save to complete")
 
 
+class _NoOrbaxTracebacks(logging.Filter):
+    """Drops the errors (with their tracebacks) that orbax logs from its save and finalize
+    threads, and asyncio's reports of the same failures: every one of them also reaches the
+    `Checkpointer` call that waits for the save, which raises a one-line CheckpointError naming
+    the cause and the fix. Without this a full disk prints hundreds of lines of tracebacks around
+    that line."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.levelno < logging.ERROR:
+            return True
+        return not ("orbax" in (record.pathname or "") or record.name == "asyncio")
+
+
 def quiet_orbax() -> None:
-    """Install the filter on absl's logger (orbax logs through absl) once per process."""
+    """Install the filters on absl's logger (orbax logs through absl) and asyncio's, once per
+    process."""
     logger = logging.getLogger("absl")
     if not any(isinstance(f, _NoFalseWaitWarning) for f in logger.filters):
         logger.addFilter(_NoFalseWaitWarning())
+    for name in ("absl", "asyncio"):
+        lg = logging.getLogger(name)
+        if not any(isinstance(f, _NoOrbaxTracebacks) for f in lg.filters):
+            lg.addFilter(_NoOrbaxTracebacks())
 
 
 def _is_typed_key(x: Any) -> bool:
@@ -206,7 +226,6 @@ class Checkpointer:
             self._worker = None
 
     def _save_error(self, step: int, e: BaseException) -> CheckpointError:
-        from dscpp_jax.run_logging import os_error_fix
         return CheckpointError(
             f"could not save the checkpoint of iteration {step} under {self.directory} "
             f"({_reason(e)}); {self._kept()}. Fix: "
@@ -306,14 +325,25 @@ class Checkpointer:
         return from_stored(from_storable(stored, as_stored(like)), like)
 
     def close(self) -> None:
-        """Wait for a save still finishing (raising its error), then close the manager."""
+        """Wait for a save still finishing, then close the manager; raises the first error (a
+        CheckpointError), and only that one: orbax raises a failed save's error again at each
+        later wait."""
+        err = None
         try:
             self.wait()
-        finally:
+        except BaseException as e:  # noqa: BLE001 - raised below, after closing
+            err = e
+        for step in (self.manager.wait_until_finished, self.manager.close):
             try:
-                self.manager.wait_until_finished()
-            finally:
-                self.manager.close()
+                step()
+            except Exception as e:  # noqa: BLE001
+                if err is None:
+                    err = CheckpointError(
+                        f"could not finish writing a checkpoint under {self.directory} "
+                        f"({_reason(e)}); {self._kept()}. Fix: "
+                        f"{os_error_fix(e, self.directory, self.run_dir)}")
+        if err is not None:
+            raise err
 
 
 def save_state(run_dir: str, step: int, state: Any, keep: int = 2) -> None:

@@ -22,16 +22,16 @@ from typing import Any, Optional
 
 from dscpp_jax.config import ALGOS, PRESETS, SUBGOALS, Config, parse_value, preset
 from dscpp_jax import diagnose
-
-
-class TrainingDiverged(RuntimeError):
-    """Learning produced NaN/inf; the message names the component."""
+from dscpp_jax.host_loop import Budget, TrainingDiverged, nonfinite_parts, on_main_thread
+from dscpp_jax.run_dir import check_fresh, lock_run_dir
+from dscpp_jax.run_logging import RunDirError
 
 
 # ------------------------------------------------------------------------------------------------
 # Config from arguments
 # ------------------------------------------------------------------------------------------------
-def _overrides(pairs: list[str]) -> dict[str, Any]:
+def parse_overrides(pairs: list[str]) -> dict[str, Any]:
+    """`--set name=value` items as {field: value}, each value parsed as the field's type."""
     out: dict[str, Any] = {}
     for p in pairs or []:
         if "=" not in p:
@@ -42,23 +42,89 @@ def _overrides(pairs: list[str]) -> dict[str, Any]:
     return out
 
 
+DEFAULT_ENV, DEFAULT_ALGO, DEFAULT_SEED, DEFAULT_PRESET = "point_u_maze", "mb_dscpp", 0, "fast"
+"""What `train` uses where --env, --algo, --seed, --preset are not given (a fresh run)."""
+
+FLAG_FIELDS = (("num_envs", "--num-envs"), ("steps_per_iter", "--steps-per-iter"),
+               ("total_env_steps", "--total-steps"), ("total_episodes", "--total-episodes"),
+               ("eval_every", "--eval-every"), ("eval_episodes", "--eval-episodes"),
+               ("checkpoint_every", "--checkpoint-every"), ("subgoal", "--subgoal"))
+"""Config fields that `train` has a flag of its own for (field, flag)."""
+
+RESUME_APPLIED = ("total_env_steps", "total_episodes", "eval_every", "eval_episodes",
+                  "checkpoint_every", "keep_checkpoints", "log_every")
+"""Config fields a --resume may change (the schedule and the host's cadences); they are
+recorded in config.json. Every other field is fixed by the checkpoint."""
+
+
 def config_from_args(args) -> Config:
-    kw = _overrides(args.set)
-    for name in ("num_envs", "steps_per_iter", "total_env_steps", "total_episodes", "eval_every",
-                 "eval_episodes", "checkpoint_every", "subgoal"):
+    kw = parse_overrides(args.set)
+    for name, _ in FLAG_FIELDS:
         v = getattr(args, name, None)
         if v is not None:
             kw[name] = v
-    kw["seed"] = args.seed
+    seed = getattr(args, "seed", None)
+    kw["seed"] = DEFAULT_SEED if seed is None else seed
     if getattr(args, "physics", None):
         kw["physics"] = args.physics
-    cfg = preset(args.preset, args.env, args.algo, **kw)
+    cfg = preset(getattr(args, "preset", None) or DEFAULT_PRESET,
+                 getattr(args, "env", None) or DEFAULT_ENV,
+                 getattr(args, "algo", None) or DEFAULT_ALGO, **kw)
     cfg.validate()
     from dscpp_jax.trainer import resolve_physics   # record the back end that will run
     cfg = resolve_physics(cfg)
     from dscpp_jax import envs  # unknown env names fail here, before anything is compiled
     envs.make(cfg.env)
     return cfg
+
+
+def resume_changes(args, saved: Config, group: bool = False) -> dict:
+    """The config changes that `train --resume` with these flags asks of the run saved as
+    `saved`: the fields of `RESUME_APPLIED` that a flag or `--set` gives. Any other flag or field
+    that the checkpoint fixes (env, algo, seed, num_envs, ...) is accepted when it equals the
+    saved value and refused (ValueError, naming each) when it differs; --preset, --overwrite and a
+    --run-dir other than the resumed one are refused too. Nothing is ignored."""
+    given: dict[str, tuple] = {}   # field -> (value, how it was given)
+    for k, v in parse_overrides(getattr(args, "set", None)).items():
+        given[k] = (v, f"--set {k}={v}")
+    for name, flag in FLAG_FIELDS + (("env", "--env"), ("algo", "--algo")):
+        v = getattr(args, name, None)
+        if v is not None:
+            given[name] = (v, f"{flag} {v}")
+    if getattr(args, "seed_given", False):
+        given["seed"] = (args.seed, f"--seed {args.seed}")
+    physics = getattr(args, "physics", None)
+    if physics is not None and physics != "auto":   # auto: whatever the run was given
+        given["physics"] = (physics, f"--physics {physics}")
+    elif "physics" in given and given["physics"][0] == "auto":
+        del given["physics"]
+    problems = []
+    if getattr(args, "preset", None) is not None:
+        problems.append(f"--preset {args.preset} (a preset picks a new run's config; the resumed "
+                        f"run keeps its own)")
+    if getattr(args, "overwrite", False):
+        problems.append("--overwrite (it starts the run over; --resume continues it)")
+    run_dir = getattr(args, "run_dir", None)
+    if run_dir is not None and os.path.abspath(run_dir) != os.path.abspath(args.resume):
+        problems.append(f"--run-dir {run_dir} (the resumed run stays in {args.resume})")
+    changes = {}
+    for k, (v, how) in given.items():
+        if k in RESUME_APPLIED:
+            changes[k] = v
+            continue
+        if group and k == "seed":
+            problems.append(f"{how} (a seed group continues its own seeds)")
+            continue
+        current = getattr(saved, k, None)
+        if v != current:
+            problems.append(f"{how} (the run has {k}={current})")
+    if problems:
+        raise ValueError(
+            f"--resume cannot change {'; '.join(problems)}. The checkpoint fixes the state's "
+            f"shapes and the algorithm; on resume only these may change: --total-steps, "
+            f"--total-episodes, --eval-every, --eval-episodes, --checkpoint-every, --set "
+            f"keep_checkpoints=N, --set log_every=N. Start a new run for anything else")
+    return changes
 
 
 def frontier_note(cfg: Config) -> str:
@@ -256,28 +322,18 @@ def chain_warnings(metrics: dict, cfg: Config, who: str = "") -> list:
     return out
 
 
-def _check_finite(metrics: dict) -> Optional[str]:
-    import math
-    bad = [k.split("/", 1)[1] for k, v in metrics.items()
-           if k.startswith("finite/") and float(v) < 0.5]
-    for k in ("td3/critic_loss", "td3/actor_loss", "dynamics/loss"):
-        if k in metrics and not math.isfinite(float(metrics[k])):
-            bad.append(k)
-    if not bad:
-        return None
-    names = {"td3": "the TD3 actor/critic parameters", "dynamics": "the dynamics model parameters",
-             "classifiers": "the initiation classifiers (SVM coefficients)"}
-    return ", ".join(names.get(b, b) for b in dict.fromkeys(bad))
-
-
 def train(cfg: Optional[Config] = None, run_dir: Optional[str] = None, resume: bool = False,
           time_budget: Optional[float] = None, progress: bool = True,
           max_iterations: Optional[int] = None, initial_state=None,
-          wandb: Optional[dict] = None):
+          wandb: Optional[dict] = None, overwrite: bool = False):
     """Train (or resume) a run; returns (state, run_dir). Saves checkpoints and metrics.csv.
 
     `initial_state` (optional) replaces `init(PRNGKey(seed), cfg)` for a fresh run. `wandb`
     (optional): `{"project": ..., "mode": ...}` also logs to Weights & Biases.
+    The run directory is locked for this process (`run_dir.lock_run_dir`); a fresh run refuses a
+    directory that holds an earlier run unless `overwrite`, which clears it first.
+    `time_budget` (seconds) counts from the start of the process for the command line, else from
+    this call: the loop stops, with a checkpoint, before an iteration that would end past it.
     A directory that cannot be read or written raises a ValueError (`RunDirError`,
     `CheckpointError`) that names the fix; what was saved before stays as it was."""
     import jax
@@ -289,6 +345,7 @@ def train(cfg: Optional[Config] = None, run_dir: Optional[str] = None, resume: b
     from dscpp_jax.run_logging import RunLogger, StartupClock, load_config, write_config
 
     clock = StartupClock(count_process=_FROM_COMMAND_LINE)
+    budget = Budget(time_budget, count_process=_FROM_COMMAND_LINE)
     if resume:
         if run_dir is None:
             raise ValueError("--resume needs the run directory to continue")
@@ -305,7 +362,11 @@ def train(cfg: Optional[Config] = None, run_dir: Optional[str] = None, resume: b
     for note in notes_beyond_paper(cfg):
         print(note, file=sys.stderr)
     try:
-        os.makedirs(run_dir, exist_ok=True)
+        lock_run_dir(run_dir)
+        if not resume:
+            check_fresh(run_dir, overwrite)
+    except RunDirError:
+        raise
     except OSError as e:
         raise _write_error(run_dir, e, "create the run directory") from None
     if _is_ant(cfg) and jax.default_backend() == "cpu":
@@ -357,7 +418,7 @@ def train(cfg: Optional[Config] = None, run_dir: Optional[str] = None, resume: b
         print("\ninterrupt: finishing this iteration, saving a checkpoint, then exiting "
               "(Ctrl-C again to abort without saving)", file=sys.stderr)
 
-    old_handler = signal.signal(signal.SIGINT, on_sigint) if _main_thread() else None
+    old_handler = signal.signal(signal.SIGINT, on_sigint) if on_main_thread() else None
     pbar = None
     if progress:
         try:
@@ -377,6 +438,9 @@ def train(cfg: Optional[Config] = None, run_dir: Optional[str] = None, resume: b
         while not _schedule_done(cfg, state):
             if max_iterations is not None and int(state.counters.iteration) - start_iter >= max_iterations:
                 break
+            if budget.no_room():
+                print(budget.reached_text(), file=sys.stderr)
+                break
             prev = state
             t0 = time.time()
             state, m = T.train_step(state)
@@ -388,7 +452,7 @@ def train(cfg: Optional[Config] = None, run_dir: Optional[str] = None, resume: b
                 _write_startup(clock, run_dir, pbar, iteration=int(state.counters.iteration),
                                resumed_at_iteration=start_iter, physics=cfg.physics,
                                device=str(jax.devices()[0].device_kind))
-            bad = _check_finite(m)
+            bad = nonfinite_parts(m)
             if bad:
                 it = int(prev.counters.iteration)
                 ckpt.save(it, prev)
@@ -433,14 +497,14 @@ def train(cfg: Optional[Config] = None, run_dir: Optional[str] = None, resume: b
             if cfg.checkpoint_every and it % cfg.checkpoint_every == 0:
                 ckpt.save(it, state, wait=False)   # written while the next iterations run
                 saved_iter = it
+            budget.iteration_took(time.time() - t0)
             if stop["flag"]:
-                break
-            if time_budget is not None and time.time() - t_start >= time_budget:
-                print(f"time budget of {time_budget:.0f}s reached", file=sys.stderr)
                 break
         it = int(state.counters.iteration)
         if it != saved_iter or ckpt.latest_step() is None:
+            t0 = time.time()
             ckpt.save(it, state)
+            budget.save_took(time.time() - t0)
         if stop["flag"]:
             print(f"saved a checkpoint at iteration {it}; continue with --resume {run_dir}",
                   file=sys.stderr)
@@ -507,11 +571,6 @@ def _schedule_done(cfg: Config, state) -> bool:
     if int(c.env_steps) >= cfg.total_env_steps:
         return True
     return cfg.total_episodes > 0 and int(c.episodes) >= cfg.total_episodes
-
-
-def _main_thread() -> bool:
-    import threading
-    return threading.current_thread() is threading.main_thread()
 
 
 def _previous_wall(run_dir: str) -> float:
@@ -790,27 +849,18 @@ def cmd_train(args) -> int:
     if args.resume:
         from dscpp_jax.run_logging import load_config
         cfg = load_config(args.resume)
-        extra = _overrides(args.set)
-        for name in ("total_env_steps", "total_episodes"):
-            if getattr(args, name) is not None:
-                extra[name] = getattr(args, name)
-        # only schedule-length / host-side fields may change on resume
-        allowed = {"total_env_steps", "total_episodes", "eval_every", "eval_episodes",
-                   "checkpoint_every", "keep_checkpoints", "log_every"}
-        bad = sorted(set(extra) - allowed)
-        if bad:
-            raise ValueError(f"--resume cannot change {bad}: they change the state's shapes or the "
-                             f"algorithm; allowed on resume: {sorted(allowed)}")
-        cfg = cfg.override(**extra)
+        cfg = cfg.override(**resume_changes(args, cfg))
         run_dir = args.resume
     else:
         cfg = config_from_args(args)
         run_dir = args.run_dir
     try:
         state, run_dir = train(cfg, run_dir, resume=bool(args.resume), time_budget=args.time_budget,
-                               progress=not args.no_progress, wandb=wandb)
+                               progress=not args.no_progress, wandb=wandb,
+                               overwrite=args.overwrite)
     except TrainingDiverged as e:
         print(f"error: {e}", file=sys.stderr)
+        quiet_after_error()
         return 3
     if args.resume:
         from dscpp_jax.run_logging import read_config, write_config
@@ -821,8 +871,12 @@ def cmd_train(args) -> int:
                                                                "config_defaults")})
         except OSError as e:
             raise _write_error(run_dir, e, "update config.json") from None
-    import jax
-
+    if not _schedule_done(cfg, state):   # the final evaluation belongs to the schedule's end
+        print(f"run: {run_dir}\nstopped at iteration {int(state.counters.iteration)} "
+              f"({int(state.counters.env_steps)} env steps, {int(state.counters.episodes)} "
+              f"episodes) before the end of its schedule; continue with `train --resume "
+              f"{run_dir}`, evaluate with `eval --run {run_dir}`")
+        return 0
     from dscpp_jax.evaluate import evaluate
     ev, res = evaluate(state, num_episodes=cfg.eval_episodes)
     final = dict(ev, iteration=int(state.counters.iteration),
@@ -921,11 +975,9 @@ def cmd_train_group(args) -> int:
                              f"resume a single run without --seeds")
         if args.seeds is not None:
             raise ValueError("--resume of a seed group continues its own seeds; drop --seeds")
-        extra = _overrides(args.set)
-        for name in ("total_env_steps", "total_episodes"):
-            if getattr(args, name) is not None:
-                extra[name] = getattr(args, name)
-        cfg, seeds = group_train.resume_config(args.resume, extra)
+        saved = Config.from_dict(group_train.read_group(args.resume)["config"])
+        cfg, seeds = group_train.resume_config(args.resume,
+                                               resume_changes(args, saved, group=True))
         group_dir = args.resume
     else:
         cfg = config_from_args(args)
@@ -935,9 +987,10 @@ def cmd_train_group(args) -> int:
     try:
         states, group_dir, summaries = group_train.train_group(
             cfg, seeds, group_dir, resume=bool(args.resume), time_budget=args.time_budget,
-            progress=not args.no_progress, plot=args.plot)
+            progress=not args.no_progress, plot=args.plot, overwrite=args.overwrite)
     except TrainingDiverged as e:
         print(f"error: {e}", file=sys.stderr)
+        quiet_after_error()
         return 3
     import jax
     c = SG.to_host(states.counters)   # a collective in a multi-process run: every process
@@ -945,6 +998,12 @@ def cmd_train_group(args) -> int:
         return 0
     if args.resume:
         group_train.update_configs(group_dir, cfg, seeds)
+    if summaries is None:   # stopped before the end of the schedule: no final evaluation
+        print(f"group: {group_dir} stopped before the end of its schedule; continue with "
+              f"`train --resume {group_dir}`, evaluate with `eval --run {group_dir}`")
+        for i, s in enumerate(seeds):
+            print(f"  s{s}: env steps {int(c.env_steps[i])}, episodes {int(c.episodes[i])}")
+        return 0
     import numpy as np
     succ = np.array([s["eval/success_rate"] for s in summaries])
     print(f"group: {group_dir} ({len(seeds)} seeds on {jax.device_count()} devices)")
@@ -963,10 +1022,11 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="cmd", required=True)
 
     t = sub.add_parser("train", help="train a run (or continue one with --resume)")
-    t.add_argument("--env", default="point_u_maze")
-    t.add_argument("--algo", default="mb_dscpp", choices=ALGOS)
-    t.add_argument("--seed", type=int, default=0, action=_SeedGiven)
-    t.add_argument("--preset", default="fast", choices=PRESETS)
+    t.add_argument("--env", default=None, help=f"default: {DEFAULT_ENV}")
+    t.add_argument("--algo", default=None, choices=ALGOS, help=f"default: {DEFAULT_ALGO}")
+    t.add_argument("--seed", type=int, default=None, action=_SeedGiven,
+                   help=f"default: {DEFAULT_SEED}")
+    t.add_argument("--preset", default=None, choices=PRESETS, help=f"default: {DEFAULT_PRESET}")
     t.add_argument("--subgoal", default=None, choices=SUBGOALS)
     t.add_argument("--physics", default=None, choices=("auto", "jax", "warp"),
                    help="ant physics back end: warp (MuJoCo Warp, default on a GPU with warp-lang "
@@ -983,9 +1043,16 @@ def build_parser() -> argparse.ArgumentParser:
                    help="override any Config field (repeatable)")
     t.add_argument("--run-dir", default=None, help="default: runs/<env>-<algo>-s<seed>-<time>")
     t.add_argument("--resume", default=None, metavar="RUN_DIR",
-                   help="continue a run from its last checkpoint")
+                   help="continue a run from its last checkpoint; flags the checkpoint fixes "
+                        "(env, algo, seed, num-envs, ...) must equal the run's, the schedule's "
+                        "and cadences' (totals, eval, checkpoint) are applied")
+    t.add_argument("--overwrite", action="store_true",
+                   help="start over in a --run-dir that holds an earlier run: its checkpoints "
+                        "and logs are deleted first (without this flag such a directory is "
+                        "refused)")
     t.add_argument("--time-budget", type=_seconds, default=None, metavar="SECONDS",
-                   help="checkpoint and stop after this much wall-clock")
+                   help="wall-clock from the start of the process: before an iteration that "
+                        "would end past it, checkpoint and stop (no final evaluation)")
     t.add_argument("--no-progress", action="store_true",
                    help="no progress bar; print one line per evaluation instead")
     t.add_argument("--plot", action="store_true",
@@ -1117,7 +1184,8 @@ def runs_on_warp(args) -> bool:
     else the saved config of `--resume` / `--run`, else "auto", which picks Warp where warp-lang
     is installed (the GPU default). Decided before JAX starts, so that `--deterministic`'s
     default can follow it; point-mass twins have no MuJoCo physics."""
-    env = getattr(args, "env", None) or ""
+    env = getattr(args, "env", "")
+    env = DEFAULT_ENV if env is None else env   # train's default
     physics = None
     for item in getattr(args, "set", None) or []:
         k, _, v = item.partition("=")
@@ -1153,6 +1221,18 @@ def deterministic_choice(args) -> bool:
     return deterministic_default(args) if on is None else on
 
 
+def quiet_after_error() -> None:
+    """Once a command has printed its one-line error, keep the rest of the process quiet: the
+    same failure raised again in library threads (orbax's, tensorboardX's writer) or in exit
+    handlers (a log writer flushing onto the full disk) is not printed after that line. Only
+    for `main()` run as the process's command, which ends right after."""
+    import threading
+    if not _FROM_COMMAND_LINE:
+        return
+    sys.unraisablehook = lambda unraisable: None
+    threading.excepthook = lambda hook_args: None
+
+
 _FROM_COMMAND_LINE = False
 """Set by `main()` run as the process's command (no argv given): only then does a start-up
 record count the process's own start (interpreter, imports) as part of the command."""
@@ -1170,6 +1250,7 @@ def main(argv: Optional[list[str]] = None) -> int:
         return args.func(args)
     except ValueError as e:
         print(f"error: {e}", file=sys.stderr)
+        quiet_after_error()
         return 2
     except BrokenPipeError:   # the reader of stdout left (`... | head`): stop quietly
         try:   # no second BrokenPipeError when the interpreter flushes stdout at exit
@@ -1182,6 +1263,7 @@ def main(argv: Optional[list[str]] = None) -> int:
         where = getattr(e, "filename", None) or "the run directory"
         print(f"error: {e.strerror or e} ({where}). Fix: {os_error_fix(e, str(where))}",
               file=sys.stderr)
+        quiet_after_error()
         return 2
 
 

@@ -27,6 +27,9 @@ from typing import Dict, Optional, Sequence
 import numpy as np
 
 from dscpp_jax.config import Config
+from dscpp_jax.host_loop import Budget, TrainingDiverged, nonfinite_parts, on_main_thread
+from dscpp_jax.run_dir import check_fresh, lock_run_dir
+from dscpp_jax.run_logging import RunDirError
 
 GROUP_FILE = "group.json"
 
@@ -142,24 +145,119 @@ def _done(cfg: Config, env_steps: float, episodes: float) -> bool:
     return cfg.total_episodes > 0 and episodes >= cfg.total_episodes
 
 
+class GroupTooLarge(ValueError):
+    """A seed group whose state would not fit in the memory of its devices or host."""
+
+
+STATE_COPIES = 2
+"""Group states a device holds at once while training: the state and the next one (the loop
+keeps the previous state until the step's metrics are checked, to save it if they are not
+finite)."""
+
+
+def state_bytes(tree) -> int:
+    """Bytes of the arrays of a (possibly abstract) pytree."""
+    import jax
+    total = 0
+    for x in jax.tree_util.tree_leaves(tree):
+        try:
+            itemsize = np.dtype(x.dtype).itemsize
+        except TypeError:   # a typed PRNG key: its raw key data
+            itemsize = 8
+        total += int(np.prod(x.shape, dtype=np.int64)) * itemsize
+    return total
+
+
+def available_memory(devices) -> tuple:
+    """(free bytes on each device, or None where the device does not say; free host memory in
+    bytes, or None where unknown): a device's own pool (accelerators), the host's
+    MemAvailable from /proc/meminfo."""
+    per_device = []
+    for d in devices:
+        try:
+            stats = d.memory_stats() or {}
+        except Exception:  # noqa: BLE001 - back ends without memory statistics
+            stats = {}
+        limit = stats.get("bytes_limit")
+        per_device.append(None if limit is None else int(limit) - int(stats.get("bytes_in_use", 0)))
+    host = None
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    host = int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return per_device, host
+
+
+def check_group_memory(cfg: Config, n: int, mesh) -> dict:
+    """Refuse (GroupTooLarge) a group of `n` seeds whose states would not fit: the shapes of the
+    group state (`seed_group.group_shapes`, nothing allocated) against the free memory of the
+    mesh's devices (`STATE_COPIES` states each) and of the host (where the devices are the host's
+    CPU, or for the copy a checkpoint takes). Returns the numbers it compared."""
+    import jax
+
+    from dscpp_jax import seed_group as SG
+    _, one, like = SG.group_shapes(cfg, n)
+    seed_b = state_bytes(one)
+    total_b = state_bytes(like)
+    devices = [d for d in mesh.devices.flat]
+    local = [d for d in devices if d.process_index == jax.process_index()]
+    per_dev_seeds = -(-n // max(1, len(devices)))
+    shared_b = max(0, total_b - n * seed_b)   # buffers shared by every seed (MuJoCo Warp)
+    dev_need = STATE_COPIES * (per_dev_seeds * seed_b + shared_b)
+    free_dev, free_host = available_memory(local[:1])
+    on_cpu = local[0].platform == "cpu"
+    host_need = (STATE_COPIES if on_cpu else 1) * total_b * len(local) // max(1, len(devices))
+    numbers = {"seed_bytes": seed_b, "device_need": dev_need, "device_free": free_dev[0],
+               "host_need": host_need, "host_free": free_host}
+
+    def gib(b):
+        return f"{b / 2**30:.2f} GiB"
+    fit = None
+    if not on_cpu and free_dev[0] is not None and dev_need > free_dev[0]:
+        fit = max(0, (free_dev[0] // STATE_COPIES - shared_b) // max(1, seed_b)) * len(devices)
+        where = (f"{gib(dev_need)} on each of {len(devices)} {local[0].platform.upper()} "
+                 f"device(s) ({STATE_COPIES} copies of {per_dev_seeds} seed states), but "
+                 f"{gib(free_dev[0])} are free there")
+    elif free_host is not None and host_need > free_host:
+        copies = STATE_COPIES if on_cpu else 1
+        fit = max(0, free_host // copies // max(1, seed_b)) * len(devices) // max(1, len(local))
+        where = f"{gib(host_need)} of host memory, but {gib(free_host)} are available"
+    if fit is not None:
+        raise GroupTooLarge(
+            f"a group of {n} seeds does not fit: one seed's state is {seed_b / 2**20:.1f} MiB "
+            f"(replay_capacity={cfg.replay_capacity}, model_capacity={cfg.model_capacity}, "
+            f"num_envs={cfg.num_envs}), so the group needs about {where}. Train at most {fit} "
+            f"seeds at once, or lower replay_capacity / model_capacity. Nothing was written")
+    return numbers
+
+
 def train_group(cfg: Config, seeds: Sequence[int], group_dir: Optional[str] = None,
                 resume: bool = False, time_budget: Optional[float] = None, progress: bool = True,
-                max_iterations: Optional[int] = None, mesh=None, plot: bool = False):
+                max_iterations: Optional[int] = None, mesh=None, plot: bool = False,
+                overwrite: bool = False):
     """Train (or resume) a seed group; returns (group state, group_dir, per-seed eval summaries).
 
     `cfg.seed` is ignored: seed i of the group uses seeds[i]. Stops when every seed's schedule is
     over (a seed that is done earlier is frozen where its separate run would have stopped), on
-    Ctrl-C, at the time budget or at `max_iterations` group iterations."""
+    Ctrl-C, at the time budget or at `max_iterations` group iterations. The final evaluation
+    (eval.json of each seed; the summaries) belongs to the end of the schedule: a group that stops
+    before every seed is done returns None for the summaries. The group directory is locked
+    for this process; a fresh group refuses a directory that holds an earlier run unless
+    `overwrite`, and one too large for the devices' memory is refused before anything is
+    allocated (`check_group_memory`)."""
     import jax
 
     from dscpp_jax import seed_group as SG
     from dscpp_jax import trainer as T
-    from dscpp_jax.cli import (INBAND_LINE_EVERY, TrainingDiverged, _check_finite, _is_ant,
-                               _main_thread, _previous_wall, chain_warnings)
+    from dscpp_jax.cli import INBAND_LINE_EVERY, _is_ant, _previous_wall, chain_warnings
     from dscpp_jax import cli
     from dscpp_jax.run_logging import RunLogger, StartupClock, read_config, write_config
 
     clock = StartupClock(count_process=cli._FROM_COMMAND_LINE)
+    budget = Budget(time_budget, count_process=cli._FROM_COMMAND_LINE)
     seeds = tuple(int(s) for s in seeds)
     n = len(seeds)
     mesh = SG.seed_mesh() if mesh is None else mesh
@@ -171,9 +269,13 @@ def train_group(cfg: Config, seeds: Sequence[int], group_dir: Optional[str] = No
     if resume and not is_group_dir(group_dir):
         raise ValueError(f"--resume needs an existing group directory (with {GROUP_FILE}), got "
                          f"{group_dir!r}")
+    check_group_memory(cfg, n, mesh)   # before anything is allocated or written
     cfgs = [cfg.override(seed=s) for s in seeds]
     dirs = [seed_dir(group_dir, s) for s in seeds]
     if lead:
+        lock_run_dir(group_dir)
+        if not resume:
+            check_fresh(group_dir, overwrite)
         for d in dirs:
             os.makedirs(d, exist_ok=True)
     if _is_ant(cfg) and jax.default_backend() == "cpu":
@@ -216,7 +318,7 @@ def train_group(cfg: Config, seeds: Sequence[int], group_dir: Optional[str] = No
         print("\ninterrupt: finishing this iteration, saving a checkpoint of the group, then "
               "exiting (Ctrl-C again to abort without saving)", file=sys.stderr)
 
-    old_handler = signal.signal(signal.SIGINT, on_sigint) if _main_thread() else None
+    old_handler = signal.signal(signal.SIGINT, on_sigint) if on_main_thread() else None
     pbar = None
     if progress and lead:
         try:
@@ -251,6 +353,9 @@ def train_group(cfg: Config, seeds: Sequence[int], group_dir: Optional[str] = No
                 break
             if max_iterations is not None and group_it - start_iter >= max_iterations:
                 break
+            if _agree(np.array([budget.no_room()]))[0]:
+                print(budget.reached_text(), file=sys.stderr)
+                break
             prev = states
             t0 = time.time()
             states, m = SG.train_step_group(states, active, mesh)
@@ -265,7 +370,7 @@ def train_group(cfg: Config, seeds: Sequence[int], group_dir: Optional[str] = No
                                    physics=T.resolve_physics(cfg).physics,
                                    device=str(jax.devices()[0].device_kind))
             bad = {seeds[i]: b for i in range(n) if active[i]
-                   for b in [_check_finite({k: v[i] for k, v in m.items()})] if b}
+                   for b in [nonfinite_parts({k: v[i] for k, v in m.items()})] if b}
             if bad:
                 if saved_iter != group_it or ckpt.latest_step() is None:
                     ckpt.save(group_it, prev)
@@ -341,20 +446,20 @@ def train_group(cfg: Config, seeds: Sequence[int], group_dir: Optional[str] = No
             if cfg.checkpoint_every and group_it % cfg.checkpoint_every == 0:
                 ckpt.save(group_it, states, wait=False)   # written while the next iterations run
                 saved_iter = group_it
-            over = time_budget is not None and time.time() - t_start >= time_budget
-            stop_now, over = _agree(np.array([stop["flag"], over]))
-            if stop_now:
-                break
-            if over:
-                print(f"time budget of {time_budget:.0f}s reached", file=sys.stderr)
+            budget.iteration_took(time.time() - t0)
+            if _agree(np.array([stop["flag"]]))[0]:
                 break
         if group_it != saved_iter or ckpt.latest_step() is None:
+            t0 = time.time()
             ckpt.save(group_it, states)
+            budget.save_took(time.time() - t0)
         if stop["flag"]:
             print(f"saved a checkpoint of the group at iteration {group_it}; continue with "
                   f"--resume {group_dir}", file=sys.stderr)
-        summaries, res = SG.evaluate_group(states, num_episodes=cfg.eval_episodes, mesh=mesh)
-        _flush_pending(pending, summaries, loggers, last_eval)
+        summaries = res = None
+        if all(_done(c_, e, p) for c_, e, p in zip(cfgs, env_steps, episodes)):
+            summaries, res = SG.evaluate_group(states, num_episodes=cfg.eval_episodes, mesh=mesh)
+            _flush_pending(pending, summaries, loggers, last_eval)
     finally:
         _flush_pending(pending, None, loggers, last_eval)   # on an error: the rows, no evaluation
         if pbar is not None:
@@ -366,6 +471,8 @@ def train_group(cfg: Config, seeds: Sequence[int], group_dir: Optional[str] = No
             signal.signal(signal.SIGINT, old_handler)
 
     c = SG.to_host(states.counters)               # collectives: every process takes part
+    if summaries is None:
+        return states, group_dir, None
     host = SG.to_host(states) if plot else None
     if lead:
         for i, d in enumerate(dirs):

@@ -49,12 +49,29 @@ def os_error_fix(e: BaseException, path: str, resume_dir: Optional[str] = None) 
     return f"check the disk and the permissions of {path} ({text}){again}"
 
 
+def current_umask() -> int:
+    """This process's umask, read without changing it (Linux's /proc/self/status; elsewhere by
+    setting it and back, which other threads could see for an instant)."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
 def atomic_write(path: str, text: str) -> None:
     """Write `path` through a temporary file and a rename: a failed write (a full disk) leaves
-    the old file as it was."""
+    the old file as it was. The file gets the permissions `open` would give it (0666 less the
+    umask), not the temporary file's 0600."""
     d = os.path.dirname(os.path.abspath(path))
     fd, tmp = tempfile.mkstemp(prefix="." + os.path.basename(path) + ".", dir=d)
     try:
+        os.fchmod(fd, 0o666 & ~current_umask())
         with os.fdopen(fd, "w", newline="") as f:
             f.write(text)
             f.flush()

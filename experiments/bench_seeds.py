@@ -138,7 +138,7 @@ def main(argv=None) -> int:
                    help="JSON path (default experiments/results/bench_seeds_<device>.json)")
     args = p.parse_args(argv)
 
-    from dscpp_jax.cli import _overrides, deterministic_choice, use_xla_flags
+    from dscpp_jax.cli import deterministic_choice, parse_overrides, use_xla_flags
     det = use_xla_flags(deterministic_choice(as_train(args)))
     import jax
 
@@ -146,7 +146,7 @@ def main(argv=None) -> int:
     from dscpp_jax.run_logging import library_versions
     # training alone, as the recorded figures: no in-band evaluation unless --set asks for it
     kw = dict(SMALL, inband_eval_envs=0) if args.small else {"inband_eval_envs": 0}
-    kw.update(_overrides(args.set))
+    kw.update(parse_overrides(args.set))
     sizes = [int(x) for x in args.seeds_list.split(",") if x.strip()]
     n_local = len(jax.local_devices())
     dev_counts = ([int(x) for x in args.devices_list.split(",") if x.strip()]

@@ -34,11 +34,11 @@ def main(argv=None) -> int:
     import jax
 
     from dscpp_jax import trainer as T
-    from dscpp_jax.cli import _overrides, use_compile_cache
+    from dscpp_jax.cli import parse_overrides, use_compile_cache
     from dscpp_jax.config import preset
     use_compile_cache(a.compile_cache)
     t = {"imports_s": time.time() - T0}
-    cfg = T.resolve_physics(preset("fast", a.env, a.algo, **_overrides(a.set)).validate())
+    cfg = T.resolve_physics(preset("fast", a.env, a.algo, **parse_overrides(a.set)).validate())
     s = time.time()
     T.make_env(cfg)
     T.step_env(cfg)

@@ -42,9 +42,9 @@ RTOL = 1e-4
 
 def group_config():
     """The config that TRAIN gives (for the API)."""
-    from dscpp_jax.cli import _overrides
+    from dscpp_jax.cli import parse_overrides
     from dscpp_jax.config import preset
-    return preset("fast", "point_u_maze", "td3_her", **_overrides(TINY))
+    return preset("fast", "point_u_maze", "td3_her", **parse_overrides(TINY))
 SKIP = ("wall_clock", "time/")
 
 
