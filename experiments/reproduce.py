@@ -170,7 +170,7 @@ def plan(args) -> dict:
 # ------------------------------------------------------------------------------------------------
 def _overrides(pairs) -> dict:
     """`--set name=value` pairs as the training command line reads them."""
-    from dscpp_jax.cli import _overrides as parse
+    from dscpp_jax.cli import parse_overrides as parse
     return parse(list(pairs))
 
 
@@ -1512,8 +1512,8 @@ def check_args(args) -> None:
             raise ValueError(f"{flag} {v}: give a whole number >= 1")
     if args.total_steps is not None and args.total_steps < 1:
         raise ValueError(f"--total-steps {args.total_steps}: give a whole number >= 1")
-    from dscpp_jax.cli import _overrides
-    _overrides(args.set)   # unknown fields and values of the wrong type, as `train --set` says
+    from dscpp_jax.cli import parse_overrides
+    parse_overrides(args.set)   # unknown fields and values of the wrong type, as `train --set` says
 
 
 def main(argv: Optional[list] = None) -> int:

@@ -144,7 +144,8 @@ def test_warp_matches_mujoco_c():
 
 
 _TEMPLATE_DIGEST = """
-import hashlib, jax, numpy as np, envs
+import hashlib, jax, numpy as np
+from dscpp_jax import envs
 env = envs.make("u_maze", physics="warp", warp_worlds=4)
 h = hashlib.sha256()
 for leaf in jax.tree_util.tree_leaves((env._data0, env.mjx_model)):

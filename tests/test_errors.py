@@ -372,9 +372,9 @@ def test_missing_warp_probe_is_silent_other_output_is_not(tmp_path):
         "print('Failed to import warp: CUDA driver too old')\n"
         "print('hello from chatty_mod')\n")
     code = ("import importlib, sys\n"
-            "import dscpp_jax, envs\n"
+            "import dscpp_jax\n"
             "print('IMPORTED', flush=True)\n"
-            "from envs._quiet_import import import_quietly\n"
+            "from dscpp_jax.envs._quiet_import import import_quietly\n"
             "import_quietly('chatty_mod')\n"
             "import mujoco.mjx.warp as w\n"
             "importlib.reload(w)\n")
