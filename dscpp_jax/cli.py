@@ -208,10 +208,8 @@ def use_fusion_autotuner_off() -> bool:
 
     That autotuner compiles each large reduction and transpose fusion a second time with Triton's
     block-level emitter and times both. Under a seed group's vmap some of those fusions become
-    large enough that the Triton variants take minutes to compile: a cold compile of a 16-seed
-    MF-DSC++ group on an H200 took 324 s with it (XLA's defaults) and 28.5 s without, for 3.6 %
-    more time per iteration (2.80 s against 2.71 s; one seed: 29.7 s and 1.150 s against 28.5 s and 1.128 s;
-    experiments/results/seed_groups/README.md, "The fusion autotuner"). GEMM autotuning stays
+    large enough that the Triton variants take minutes to compile, for a few per cent faster
+    iterations (docs/reproducibility.md, "XLA settings"). GEMM autotuning stays
     on. Like every XLA flag it only takes effect before JAX first touches a device; returns whether
     the autotuner is off for this process.
     """
@@ -1208,10 +1206,7 @@ def runs_on_warp(args) -> bool:
 def deterministic_default(args) -> bool:
     """`--deterministic`'s default: deterministic XLA kernels, except where the ant physics is
     MuJoCo Warp. Warp's own kernels do not repeat on a GPU either way, so there the switch buys
-    no repeatability, and it costs time: an MB-DSC++ U-maze iteration on one H200 took 1.205 s
-    with it against 1.073 s without (TD3's matrix multiplies), for about the same compile (23.8 s
-    against 26.7 s; experiments/results/time_to_result/README.md, "Deterministic kernels off for
-    the model-based learners too")."""
+    no repeatability and only costs time (docs/reproducibility.md)."""
     return not runs_on_warp(args)
 
 

@@ -38,12 +38,8 @@ whose final evaluation is partly luck.
 Column "coverage lost": from the first iteration at which some option's region held the start
 (``options/start_covered``), how many times it then stopped holding it, with the links the chain
 made from that first iteration on ("3 (+7 links)"). The chain grows whenever the start is not
-covered, so each loss can add a link at the start; on ant four rooms with the chain's frontier
-this came and went a median of 3 times per run, against 0-0.5 without it, and a chain that had
-reached 0.63 in-band fell to 0.03 after 7 more losses and 3 more links
-(``experiments/results/time_to_result/README.md``, third four-rooms round). Losses alone are no
-verdict: the medium maze's frontier chains lose the start a median of 3.5 times and mostly
-succeed.
+covered, so each loss can add a link at the start. Losses alone are no verdict: chains that
+succeed lose the start too.
 
 Only the lean files are read (no checkpoint), so it works on results copied off a GPU host.
 ``python -m dscpp_jax.cli diagnose RUN_OR_GROUP_DIR ...`` prints one row per seed.
