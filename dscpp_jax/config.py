@@ -588,22 +588,14 @@ FRONTIER_TABLE: dict[str, dict[tuple[str, str], dict[str, Any]]] = {
 }
 
 
-def _env_rank(selector: str, env: str) -> int | None:
-    """Where an env selector that matches `env` goes in the merge order; None if it does not."""
+def _rank(selector: str, name: str, groups: dict[str, tuple[str, ...]]) -> int | None:
+    """Where a selector that matches `name` goes in the merge order ("*", then a group of
+    `groups`, then the name itself); None if it does not match."""
     if selector == "*":
         return 0
-    if env in ENV_FAMILIES.get(selector, ()):
+    if name in groups.get(selector, ()):
         return 1
-    return 2 if selector == env else None
-
-
-def _learner_rank(selector: str, algo: str) -> int | None:
-    """Where a learner selector that matches `algo` goes in the merge order; None if it does not."""
-    if selector == "*":
-        return 0
-    if algo in LEARNER_CLASSES.get(selector, ()):
-        return 1
-    return 2 if selector == algo else None
+    return 2 if selector == name else None
 
 
 def matching_entries(table: dict[tuple[str, str], dict[str, Any]], env: str,
@@ -611,7 +603,7 @@ def matching_entries(table: dict[tuple[str, str], dict[str, Any]], env: str,
     """The entries of one preset's table that apply to `env` and `algo`, in merge order."""
     ranked = []
     for (env_sel, learner_sel), entry in table.items():
-        e, a = _env_rank(env_sel, env), _learner_rank(learner_sel, algo)
+        e, a = _rank(env_sel, env, ENV_FAMILIES), _rank(learner_sel, algo, LEARNER_CLASSES)
         if e is not None and a is not None:
             ranked.append(((e, a), (env_sel, learner_sel), entry))
     return [(key, entry) for _, key, entry in sorted(ranked, key=lambda r: r[0])]
