@@ -47,7 +47,8 @@ KERNEL_BACKENDS = ("auto", "xla", "pallas")
 CHOICES: dict[str, tuple] = dict(
     algo=ALGOS, subgoal=SUBGOALS, preset=PRESETS, her_strategy=("final", "future", "none"),
     physics=("auto", "jax", "warp"), ant_integrator=("Euler", "RK4", "implicitfast"),
-    td3_dtype=DTYPES, mpc_dtype=DTYPES, mpc_backend=KERNEL_BACKENDS, svm_backend=KERNEL_BACKENDS)
+    td3_dtype=DTYPES, mpc_dtype=DTYPES, mpc_backend=KERNEL_BACKENDS, svm_backend=KERNEL_BACKENDS,
+    option_init=("copy_global", "random"))
 
 # The ant mazes and learners whose skill chains use the chain's frontier in the `fast` preset
 # (beyond the paper; dscpp_jax.frontier); `FRONTIER_TABLE` holds what it sets.
@@ -181,8 +182,10 @@ class Config:
     """matmul operands and activations of TD3's hidden layers: float32 or bfloat16 (the first and
     output layers, parameters, optimiser state, losses and targets stay float32)"""
     shared_critic: bool = True
-    """one goal-conditioned TD3 for every option (the paper's DSC++); False: one TD3 per option
-    slot, each learning from its own transitions (appendix Figure 2; model free)"""
+    """goal-conditioned option policies (`option_policies`): one TD3 for every option (the
+    paper's DSC++); False: one TD3 per option slot, each learning from its own transitions while
+    the global option's learns from all (appendix Figure 2; model free). dsc and dual always
+    learn one TD3 per option."""
     discount: float = 0.99
     """TD3's discount per env step"""
     replay_capacity: int = 1_000_000
@@ -200,6 +203,16 @@ class Config:
     """model free: the random-action probability until mf_random_decay_successes"""
     mf_random_decay_successes: int = 3
     """model free: successes after which random_action_prob replaces mf_initial_random_prob"""
+    option_init: str = "copy_global"
+    """one TD3 per option (`option_policies`): how a new option's networks start: copy_global (a
+    copy of the global option's networks, target networks included, fresh optimiser state, at
+    the option's creation) or random"""
+    global_option_timeout: int = 0
+    """env steps the global option runs before the policy over options chooses again (0: the
+    algorithm's: 1 for dsc and dual, as the authors' baseline; option_timeout otherwise)"""
+    initiation_period: int = -1
+    """successes beyond gestation the newest mature option needs before the chain creates its
+    child (< 0: the algorithm's: 2 for dsc and dual, as DSC's initiation period; 0 otherwise)"""
 
     # --- dynamics model + MPC -------------------------------------------------------------------
     dyn_hidden: int = 500
@@ -279,6 +292,39 @@ class Config:
     @property
     def classifier_variant(self) -> str:
         return "single" if self.algo == "dsc" else "dual"
+
+    @property
+    def option_policies(self) -> str:
+        """What each option's policy pursues: "region" for the baselines dsc and dual (a TD3 per
+        option on the observation alone, rewarded -1 per step and 0, done, on entering its target
+        region: the parent's pessimistic region, the task goal for the goal option; the global
+        option's TD3 learns from every transition at the task's reward); "goal" otherwise (a
+        goal-conditioned TD3 with HER driven to a subgoal point, DSC++)."""
+        return "region" if self.algo in ("dsc", "dual") else "goal"
+
+    @property
+    def per_option_td3(self) -> bool:
+        """Whether each option slot has its own TD3 (region policies always; goal-conditioned
+        policies with shared_critic=False)."""
+        return self.option_policies == "region" or not self.shared_critic
+
+    @property
+    def exploration_per_option(self) -> bool:
+        """Whether the model-free random-action schedule counts each option's own successes
+        (dsc and dual, as the authors' per-option epsilon) rather than all options' together."""
+        return self.algo in ("dsc", "dual")
+
+    @property
+    def effective_global_option_timeout(self) -> int:
+        if self.global_option_timeout > 0:
+            return self.global_option_timeout
+        return 1 if self.algo in ("dsc", "dual") else self.option_timeout
+
+    @property
+    def effective_initiation_period(self) -> int:
+        if self.initiation_period >= 0:
+            return self.initiation_period
+        return 2 if self.algo in ("dsc", "dual") else 0
 
     @property
     def steps_per_iteration_total(self) -> int:
@@ -478,6 +524,9 @@ class Config:
              f"algorithms only ({', '.join(a for a in ALGOS if a not in MODEL_BASED_ALGOS)}): "
              f"algo={self.algo!r} plans with MPC, whose value term uses one critic for all "
              f"envs; set shared_critic=True or use algo='mf_dscpp'")
+        need(self.global_option_timeout >= 0,
+             f"global_option_timeout={self.global_option_timeout} must be >= 0 (0: the "
+             f"algorithm's)")
         return self
 
 
