@@ -35,12 +35,6 @@ class TrajStep:
     segment starts in that env); hindsight relabelling never crosses a change of ``seg_id``.
     ``option`` (int32 per env) is the option that ran, stored only where every option learns its
     own TD3 (``Config.per_option_td3``); None (no leaf) otherwise. One segment is one option.
-
-    Stored only for the region policies of the baseline DSC (``Config.option_policies ==
-    "region"``; None otherwise), as the rollout found them with the classifiers of that
-    iteration: ``in_target`` (bool), ``next_obs`` lies in the running option's target region
-    (its option reward: 0 and done there, else -1), and ``at_goal`` (bool), ``next_obs`` lies
-    in the task's goal region (the global option's reward for every transition).
     """
 
     obs: jax.Array
@@ -49,6 +43,18 @@ class TrajStep:
     goal: jax.Array
     seg_id: jax.Array
     option: Optional[jax.Array] = None
+
+
+@flax.struct.dataclass
+class RegionStep(TrajStep):
+    """A :class:`TrajStep` with what the region policies of the baseline DSC
+    (``Config.option_policies == "region"``) learn from, as the rollout judged it with the
+    classifiers of that iteration: ``in_target`` (bool), ``next_obs`` lies in the running
+    option's target region (its option reward: 0 and done there, else -1), and ``at_goal``
+    (bool), ``next_obs`` lies in the task's goal region (the global option's reward for every
+    transition). (A type of its own, so that the replays of the other learners, and their
+    checkpoints, keep TrajStep's fields.)"""
+
     in_target: Optional[jax.Array] = None
     at_goal: Optional[jax.Array] = None
 

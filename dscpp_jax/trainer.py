@@ -53,7 +53,7 @@ from dscpp_jax.acting import (FRONTIER_KEY_SALT, GLOBAL_OPTION, GOAL_OPTION, NO_
 from dscpp_jax.config import Config
 from dscpp_jax.learning import td3_buffer, td3_sample_fn  # noqa: F401  (re-exported)
 from dscpp_jax.options import ChainConfig, chain_init
-from dscpp_jax.replay import Replay, TrajStep, replay_add, replay_init
+from dscpp_jax.replay import RegionStep, Replay, TrajStep, replay_add, replay_init
 from dscpp_jax.subgoals import dp_table_init
 from dscpp_jax.td3 import TD3State, td3_init, td3_init_per_option, td3_random_prob
 from dscpp_jax.envs.ant_maze import warp_available
@@ -295,12 +295,12 @@ def init_impl(key: jax.Array, config: Config) -> TrainState:
         # policies see the observation alone (no goal input)
         td3 = td3_init_per_option(k_td3, config.max_options, od, 0 if region else 2, ad,
                                   td3_config(config))
-    flag = jnp.zeros((), bool) if region else None
-    example = TrajStep(obs=jnp.zeros((od,), jnp.float32), action=jnp.zeros((ad,), jnp.float32),
-                       next_obs=jnp.zeros((od,), jnp.float32), goal=jnp.zeros((2,), jnp.float32),
-                       seg_id=jnp.zeros((), jnp.int32),
-                       option=jnp.zeros((), jnp.int32) if config.per_option_td3 else None,
-                       in_target=flag, at_goal=flag)
+    example = dict(obs=jnp.zeros((od,), jnp.float32), action=jnp.zeros((ad,), jnp.float32),
+                   next_obs=jnp.zeros((od,), jnp.float32), goal=jnp.zeros((2,), jnp.float32),
+                   seg_id=jnp.zeros((), jnp.int32),
+                   option=jnp.zeros((), jnp.int32) if config.per_option_td3 else None)
+    example = (RegionStep(**example, in_target=jnp.zeros((), bool), at_goal=jnp.zeros((), bool))
+               if region else TrajStep(**example))
     replay = replay_init(example, config.replay_capacity, B)
     if config.model_based:
         dyn = learning.init_dynamics(k_dyn, od, ad, config)
@@ -420,14 +420,16 @@ def rollout(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[st
         # rewards need, judged with this iteration's classifiers (they are refit only after the
         # rollout; the authors judge at the end of each option's execution with the classifiers
         # of that moment): s' in the option's target region, s' at the task goal
-        in_target = at_goal = None
+        step = dict(obs=obs, action=acts, next_obs=nes.obs, goal=ex.subgoal, seg_id=ex.seg_id,
+                    option=ex.option if config.per_option_td3 else None)
         if region:
-            in_target = options_terminate(config, chain, ex.option, next_xy, goal_xy)
-            at_goal = goal_reached(next_xy, goal_xy, config.goal_tolerance)
-        replay = replay_add(replay, TrajStep(
-            obs=obs, action=acts, next_obs=nes.obs, goal=ex.subgoal, seg_id=ex.seg_id,
-            option=ex.option if config.per_option_td3 else None, in_target=in_target,
-            at_goal=at_goal), ~nan)
+            step = RegionStep(**step,
+                              in_target=options_terminate(config, chain, ex.option, next_xy,
+                                                          goal_xy),
+                              at_goal=goal_reached(next_xy, goal_xy, config.goal_tolerance))
+        else:
+            step = TrajStep(**step)
+        replay = replay_add(replay, step, ~nan)
         if config.model_based:
             model_replay = replay_add(model_replay, (obs, acts, nes.obs), ~nan)
 

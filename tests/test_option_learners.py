@@ -20,7 +20,7 @@ from dscpp_jax import learning as L
 from dscpp_jax import trainer as T
 from dscpp_jax.config import preset
 from dscpp_jax.options import FREE, GESTATION, MATURE
-from dscpp_jax.replay import TrajStep, replay_add, replay_group_index, replay_init
+from dscpp_jax.replay import RegionStep, replay_add, replay_group_index, replay_init
 from dscpp_jax.td3 import (td3_copy_option, td3_init_per_option, td3_option, td3_target_noise,
                            td3_updates_options)
 from tests.trainer_fixtures import tiny
@@ -58,13 +58,13 @@ def _replay(seed, perturb_option=None, goal_dim=2):
     nxt[..., 0] = opt
     seg = np.broadcast_to((np.arange(ROWS) // 4)[:, None], (ROWS, NE)).astype(np.int32)
     f = jnp.zeros((), bool)
-    ex = TrajStep(jnp.zeros(OBS), jnp.zeros(ACT), jnp.zeros(OBS), jnp.zeros(goal_dim),
+    ex = RegionStep(jnp.zeros(OBS), jnp.zeros(ACT), jnp.zeros(OBS), jnp.zeros(goal_dim),
                   jnp.zeros((), jnp.int32), option=jnp.zeros((), jnp.int32), in_target=f,
                   at_goal=f)
     buf = replay_init(ex, ROWS * NE, NE)
     goal = rng.normal(size=(ROWS, NE, goal_dim)).astype(np.float32)
     for t in range(ROWS):
-        buf = replay_add(buf, TrajStep(jnp.asarray(obs[t]), jnp.asarray(act[t]),
+        buf = replay_add(buf, RegionStep(jnp.asarray(obs[t]), jnp.asarray(act[t]),
                                        jnp.asarray(nxt[t]), jnp.asarray(goal[t]),
                                        jnp.asarray(seg[t]), option=jnp.asarray(opt[t]),
                                        in_target=jnp.asarray(tgt[t]),
