@@ -3,13 +3,19 @@
 In the paper's words (Algorithm 2, lines 13-14, at the end of an iteration rather than after
 every execution; Algorithm 3, lines 7-9; Algorithm 1)::
 
-    td3, m  = update_policies(...)   # Alg. 2 l. 14: TD3 + HER on the shared replay
+    td3, m  = update_policies(...)   # Alg. 2 l. 14: TD3 + HER on the shared replay (one TD3
+                                     #   per option: update_option_policies)
     dyn, m  = update_dynamics(...)   # f_xi on the model replay (model-based algorithms)
     chain   = refit(...)             # Alg. 2 l. 13: refit the classifiers of the options that
                                      #   received examples
     chain   = grow_chain(...)        # Alg. 3 l. 7-9: maturity; a new option while no option's
                                      #   initiation set holds the start state
     table   = dp_value_table(...)    # Alg. 1 CREATE-VALUE-TABLE (DP subgoals only)
+
+With one TD3 per option (`Config.per_option_td3`: the baselines dsc and dual, whose region
+policies see the observation alone, and mf_dscpp with shared_critic=false) each option learns
+from its own transitions, the global option from all of them, and a new option starts as a copy
+of the global option's networks (`init_new_options`, after the chain grew).
 
 `learn` runs them in that order on a `trainer.TrainState`. Every function is pure and jit-able;
 ``seed_axis`` names the vmap axis of a seed group, so that work only some runs need runs when any

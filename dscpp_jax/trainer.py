@@ -17,7 +17,9 @@ the learning phase does in `dscpp_jax.learning`; this module holds the state, th
 2. act: uniform random during warm-up; else MPC over the learned model (model based) or the
    actor with Gaussian noise and random actions (model free);
 3. step; the option ends on local success (inside the termination region and within tolerance
-   of the subgoal), on its timeout, or when the episode ends (goal, time limit, NaN physics);
+   of the subgoal; the baselines' region policies: anywhere inside it), on its timeout (the
+   global option's own, `Config.effective_global_option_timeout`), or when the episode ends
+   (goal, time limit, NaN physics);
 4. option outcomes are recorded in the chain (positives: start + last `buffer_len` positions;
    negatives: the start); transitions go to the HER replay (and the model replay);
 5. finished episodes restart, from a diverse start once warm-up is over.
