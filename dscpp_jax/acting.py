@@ -35,7 +35,8 @@ from dscpp_jax.dynamics import DynamicsConfig
 from dscpp_jax.mpc import MPCConfig, mpc_actions as _mpc_shooting, td3_value_net
 from dscpp_jax.options import chain_metrics as _chain_metrics, option_terminates, record_outcomes \
     as _record_outcomes, select_option
-from dscpp_jax.td3 import TD3Config, td3_act, td3_explore, td3_option, td3_perturb, td3_value
+from dscpp_jax.td3 import TD3Config, td3_act, td3_explore, td3_option, td3_perturb, \
+    td3_random_prob, td3_value
 from dscpp_jax.envs.goal_env import select_states
 
 PyTree = Any
@@ -140,17 +141,27 @@ def all_seeds(pred, seed_axis):
 # ------------------------------------------------------------------------------------------------
 def value_fn(config: Config, td3, option=None):
     """value_fn(obs (..., obs_dim), goal (2,) or (..., 2)) -> (...): V(s | g) of the shared TD3, or
-    with `config.shared_critic` off of option `option`'s (a scalar, traced or not)."""
+    with one TD3 per option (`config.per_option_td3`) of option `option`'s (a scalar, traced or
+    not); a region policy's value ignores `goal` (its networks see the observation alone)."""
     tcfg = td3_config(config)
-    if not config.shared_critic:
+    if config.per_option_td3:
         if option is None:
-            raise ValueError("per-option critics (shared_critic=False): the value function needs "
-                             "the option whose critic to use")
+            raise ValueError("per-option critics (shared_critic=False, dsc, dual): the value "
+                             "function needs the option whose critic to use")
         td3 = td3_option(td3, jnp.asarray(option, jnp.int32))
 
     def fn(s, g):
-        return td3_value(tcfg, td3, s, jnp.broadcast_to(g, s[..., :2].shape))
+        return td3_value(tcfg, td3, s, policy_goals(config, jnp.broadcast_to(g, s[..., :2].shape)))
     return fn
+
+
+def policy_goals(config: Config, goals):
+    """What the option policies take as their goal input: the goals (..., 2), or for region
+    policies (`config.option_policies == "region"`) an empty (..., 0) array: they see the
+    observation alone."""
+    if config.option_policies == "region":
+        return goals[..., :0]
+    return goals
 
 
 def value_net(config: Config, td3):
@@ -176,9 +187,10 @@ def select_options(config: Config, chain, xy, prefer_pessimistic: bool = False):
 def pick_subgoals(config: Config, chain, dp_table, td3, options, obs, keys):
     """(B, 2) subgoals g ~ beta_o for the options just chosen in B envs: robust sampling (the
     paper's Section 3.2) or the DP table's argmax (Algorithm 1's PICK-SUBGOAL)."""
-    if config.algo in ("dsc", "dual"):
-        # baseline DSC: each option pursues one target at a time (a key fixed per option and
-        # chain size), not a goal re-sampled at every execution
+    if config.option_policies == "region":
+        # baseline DSC: an option pursues its whole target region, not a point; the subgoal is
+        # only a placeholder shown in plots and videos: one robust sample of the target (a key
+        # fixed per option and chain size)
         base = jax.random.PRNGKey(12345)
         keys = jax.vmap(lambda o: jax.random.fold_in(jax.random.fold_in(base, o),
                                                      chain.num_options))(options)
@@ -224,16 +236,18 @@ def policy_actions(config: Config, td3, dyn, obs, goals, key, explore: bool, ran
                    options=None):
     """(B, obs), (B, 2) -> (B, act): the option policy pi_o(. | g) (Algorithm 2, line 6): MPC
     over the learned model (eq. 2) or the actor; with exploration when `explore`.
-    `options` (B,): the option each env runs; with `config.shared_critic` off each env acts with
-    its option's actor (NO_OPTION, an env that runs none, with the global option's)."""
+    `options` (B,): the option each env runs; with one TD3 per option (`config.per_option_td3`)
+    each env acts with its option's actor (NO_OPTION, an env that runs none, with the global
+    option's). `rand_prob`: a scalar or one probability per env (B,)."""
     B = obs.shape[0]
     tcfg = td3_config(config)
-    if not config.shared_critic:
+    if config.per_option_td3:
         if config.model_based or options is None:
-            raise ValueError("per-option actors (shared_critic=False) act for model-free "
-                             "algorithms and need the option of every env")
+            raise ValueError("per-option actors (shared_critic=False, dsc, dual) act for "
+                             "model-free algorithms and need the option of every env")
         params = td3_option(td3, jnp.clip(options, 0)).actor_params     # gathered per env
-        acts = jax.vmap(lambda p, s, g: td3_act(tcfg, p, s, g))(params, obs, goals)
+        acts = jax.vmap(lambda p, s, g: td3_act(tcfg, p, s, g))(params, obs,
+                                                                policy_goals(config, goals))
         return td3_perturb(tcfg, acts, key, random_prob=rand_prob) if explore else acts
     if config.model_based:
         vf = vn = None
@@ -253,6 +267,22 @@ def policy_actions(config: Config, td3, dyn, obs, goals, key, explore: bool, ran
     return td3_act(tcfg, td3.actor_params, obs, goals)
 
 
+def random_action_probs(config: Config, chain, options, run_successes) -> jax.Array:
+    """The random-action probability of each env (B,) or of all of them (scalar).
+
+    Per option (`config.exploration_per_option`, dsc and dual): `mf_initial_random_prob` while
+    the executing option's own successes (``chain.successes``; the global option's are its own
+    task-goal hits) are at most `mf_random_decay_successes`, else the effective
+    `random_action_prob`, as the authors' ``MFOptionClass.py`` ``_get_epsilon`` (0.8 while
+    ``num_goal_hits <= 3``, else 0.2; each option has its own counter). Otherwise the run-wide
+    schedule of `td3.td3_random_prob` on `run_successes`."""
+    if config.exploration_per_option:
+        own = chain.successes[jnp.clip(options, 0)]
+        return jnp.where(own <= config.mf_random_decay_successes, config.mf_initial_random_prob,
+                         config.effective_random_prob).astype(jnp.float32)
+    return td3_random_prob(td3_config(config), run_successes)
+
+
 def push_traj(ex: ExecState, xy) -> ExecState:
     """Append the positions xy (B, 2) after a step to the running options' trajectories (the
     last `buffer_len` kept) and count the step."""
@@ -270,16 +300,22 @@ def options_terminate(config: Config, chain, options, xy, goal):
 
 def option_end(config: Config, env, chain, ex: ExecState, next_xy, done):
     """Local success / timeout / episode end of the running options (Algorithm 2, line 7: the
-    option succeeds inside its termination region within tolerance of its subgoal). Call after
-    `push_traj`. Returns (ended, success), (B,) bool each."""
+    option succeeds inside its termination region within tolerance of its subgoal; a region
+    policy, `config.option_policies == "region"`, anywhere in its termination region, as the
+    authors' ``MFOptionClass.py`` ``rollout``: ``is_term_true``). The global option times out
+    after `config.effective_global_option_timeout` steps, the others after `option_timeout`.
+    Call after `push_traj`. Returns (ended, success), (B,) bool each."""
     running = ex.option != NO_OPTION
     near = jnp.linalg.norm(next_xy - ex.subgoal, axis=-1) <= config.goal_tolerance
     if config.hierarchical:
         goal = jnp.asarray(env.goal, jnp.float32)
         term = options_terminate(config, chain, ex.option, next_xy, goal)
-        success = running & term & near
+        success = running & term if config.option_policies == "region" else running & term & near
         # `ex.opt_steps` counts the steps already taken (the caller has pushed this step)
         timeout = ex.opt_steps >= config.option_timeout
+        if config.effective_global_option_timeout != config.option_timeout:
+            timeout = jnp.where(ex.option == GLOBAL_OPTION,
+                                ex.opt_steps >= config.effective_global_option_timeout, timeout)
     else:
         success = running & near
         timeout = jnp.zeros_like(running)

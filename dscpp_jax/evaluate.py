@@ -4,7 +4,8 @@
 (or from given start positions) with deterministic option policies: no exploration noise, no
 random actions, no example collection, no learning. The TrainState is only read, never returned,
 so evaluation cannot leak into training. The episodes act through `dscpp_jax.acting`, the same
-functions as training's rollout, without exploration. It reports the success rate, steps to the
+functions as training's rollout, without exploration: with one TD3 per option (the baselines'
+region policies, or per-option critics) each option acts with its own actor. It reports the success rate, steps to the
 goal, per-option success rates, the chain probability (paper eq. 3) and the trajectories for
 plots.
 """
@@ -258,7 +259,9 @@ def make_policy(state: T.TrainState, deterministic: bool = True) -> Policy:
         k_opt, k_act = jax.random.split(key)
         ex = A.choose_options(config, env, chain, dp_table, td3, ex, obs, k_opt,
                               evaluation=deterministic)
-        p = td3_random_prob(tcfg, state.counters.option_successes)
+        p = (A.random_action_probs(config, chain, ex.option, state.counters.option_successes)
+             if config.exploration_per_option else td3_random_prob(tcfg,
+                                                                   state.counters.option_successes))
         acts = A.policy_actions(config, td3, dyn, obs, ex.subgoal, k_act, not deterministic, p,
                                 ex.option)
         ex = ex.replace(opt_steps=ex.opt_steps + 1)

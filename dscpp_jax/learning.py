@@ -3,13 +3,19 @@
 In the paper's words (Algorithm 2, lines 13-14, at the end of an iteration rather than after
 every execution; Algorithm 3, lines 7-9; Algorithm 1)::
 
-    td3, m  = update_policies(...)   # Alg. 2 l. 14: TD3 + HER on the shared replay
+    td3, m  = update_policies(...)   # Alg. 2 l. 14: TD3 + HER on the shared replay (one TD3
+                                     #   per option: update_option_policies)
     dyn, m  = update_dynamics(...)   # f_xi on the model replay (model-based algorithms)
     chain   = refit(...)             # Alg. 2 l. 13: refit the classifiers of the options that
                                      #   received examples
     chain   = grow_chain(...)        # Alg. 3 l. 7-9: maturity; a new option while no option's
                                      #   initiation set holds the start state
     table   = dp_value_table(...)    # Alg. 1 CREATE-VALUE-TABLE (DP subgoals only)
+
+With one TD3 per option (`Config.per_option_td3`: the baselines dsc and dual, whose region
+policies see the observation alone, and mf_dscpp with shared_critic=false) each option learns
+from its own transitions, the global option from all of them, and a new option starts as a copy
+of the global option's networks (`init_new_options`, after the chain grew).
 
 `learn` runs them in that order on a `trainer.TrainState`. Every function is pure and jit-able;
 ``seed_axis`` names the vmap axis of a seed group, so that work only some runs need runs when any
@@ -27,11 +33,15 @@ from dscpp_jax.acting import FRONTIER_KEY_SALT, any_seed, chain_metrics, dyn_con
     frontier_candidates, td3_config, value_fn
 from dscpp_jax.config import Config
 from dscpp_jax.dynamics import dynamics_fit_normaliser, dynamics_init, dynamics_train
-from dscpp_jax.her import her_index, her_sample
-from dscpp_jax.options import grow_chain as _grow_chain, mature_options, refit as _refit
-from dscpp_jax.replay import Replay
+from dscpp_jax.her import HERBuffer, her_index, her_relabel, her_sample
+from dscpp_jax.options import FREE, grow_chain as _grow_chain, mature_options, refit as _refit
+from dscpp_jax.replay import (Replay, Transition, replay_gather, replay_group_index,
+                              replay_group_sample_index, replay_recent, replay_sample_index)
 from dscpp_jax.subgoals import dp_value_table as _dp_value_table
-from dscpp_jax.td3 import td3_updates, td3_updates_per_option
+from dscpp_jax.td3 import (td3_copy_option, td3_option, td3_set_option, td3_updates,
+                           td3_updates_options)
+
+GLOBAL_ROW = 0   # the global option's row of the option table (acting.GLOBAL_OPTION)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -64,22 +74,115 @@ def td3_sample_fn(config: Config, env: Any = None) -> Any:
 
 def update_policies(config: Config, td3, replay: Replay, key, seed_axis=None
                     ) -> Tuple[Any, Dict[str, jax.Array]]:
-    """`config.td3_updates` TD3 steps on HER-relabelled minibatches of the replay: the shared
-    goal-conditioned TD3, or with `config.shared_critic` off one per option. Returns (td3,
-    ``td3/*`` metrics)."""
+    """The iteration's TD3 steps. The shared goal-conditioned TD3 (DSC++): `config.td3_updates`
+    steps on HER-relabelled minibatches of the replay. One TD3 per option
+    (`config.per_option_td3`): `update_option_policies`. Returns (td3, ``td3/*`` metrics)."""
     tcfg = td3_config(config)
-    if config.shared_critic:
-        td3, tm = td3_updates(tcfg, td3, td3_buffer(config, replay), key, config.td3_updates,
-                              td3_sample_fn(config), sample_block=config.td3_sample_block,
-                              seed_axis=seed_axis)
-    else:
-        # the shared TD3's steps, shared among the options in proportion to the replay entries
-        # each collected; each learns on minibatches of its own transitions (HER within them)
-        td3, tm = td3_updates_per_option(tcfg, td3, replay, replay.data.option, key,
-                                         config.td3_updates, td3_sample_fn(config),
-                                         sample_block=config.td3_sample_block,
-                                         seed_axis=seed_axis)
+    if config.per_option_td3:
+        return update_option_policies(config, td3, replay, key, seed_axis)
+    td3, tm = td3_updates(tcfg, td3, td3_buffer(config, replay), key, config.td3_updates,
+                          td3_sample_fn(config), sample_block=config.td3_sample_block,
+                          seed_axis=seed_axis)
     return td3, {f"td3/{k}": v for k, v in tm.items()}
+
+
+def option_steps(config: Config, replay: Replay) -> jax.Array:
+    """(K,) int32 gradient steps of each option's own TD3 this iteration: one per transition the
+    option collected in this iteration's rollout (times `td3_updates_per_step`); 0 for the global
+    option, whose TD3 learns from every transition (`update_option_policies`). As the authors'
+    per-option learners, which take one TD3 step per own transition (``MFOptionClass.py``
+    ``experience_replay``: ``self.solver.step``; ``MBOptionClass.py`` ``update_value_function``)."""
+    K = config.max_options
+    ids = replay.data.option
+    new = replay_recent(replay, config.steps_per_iter) & (ids >= 0) & (ids < K)
+    n_new = jnp.bincount(jnp.where(new, ids, K).reshape(-1), length=K + 1)[:K]
+    steps = jnp.round(n_new.astype(jnp.float32) * config.td3_updates_per_step).astype(jnp.int32)
+    return steps.at[GLOBAL_ROW].set(0)
+
+
+def region_batch(replay: Replay, rows, envs, done) -> Transition:
+    """The stored steps at (rows, envs) as a region policy's minibatch: reward -1, and 0 with no
+    bootstrap where ``done`` ((rows, envs)-shaped bool of the replay, e.g. ``in_target``) holds;
+    an empty goal (the policies see the observation alone). Time-outs and episode ends bootstrap
+    (``MFOptionClass.py`` ``experience_replay``: ``done = self.is_term_true(next_state)``)."""
+    steps = replay_gather(replay, rows, envs)
+    d = done[rows, envs].astype(jnp.float32)
+    return Transition(obs=steps.obs, action=steps.action, reward=-(1.0 - d),
+                      next_obs=steps.next_obs, goal=jnp.zeros(steps.obs.shape[:-1] + (0,),
+                                                               steps.obs.dtype),
+                      discount=1.0 - d)
+
+
+def option_sample_fns(config: Config, replay: Replay):
+    """(own, everything): ``own(key, k, n)`` draws option k's minibatch from its own transitions,
+    ``everything(key, n)`` the global option's from every transition.
+
+    Region policies (dsc, dual; ``MFOptionClass.py`` ``experience_replay``): an option's reward is
+    its target region's (`region_batch` on ``in_target``); the global option's, on every option's
+    transitions, the task's (``at_goal``: ``global_reward``, ``global_done``). No HER.
+
+    Goal-conditioned per-option policies (``MBOptionClass.py`` ``update_value_function``): HER
+    (`td3_sample_fn`) within the option's own segments; the global option relabels every
+    transition the same way (the authors step it with the same two goal copies)."""
+    index = replay_group_index(replay, replay.data.option, config.max_options)
+    if config.option_policies == "region":
+        def own(k, o, n):
+            rows, envs = replay_group_sample_index(replay, index, k, o, n)
+            return region_batch(replay, rows, envs, replay.data.in_target)
+
+        def everything(k, n):
+            rows, envs = replay_sample_index(replay, k, n)
+            return region_batch(replay, rows, envs, replay.data.at_goal)
+        return own, everything
+    hb: HERBuffer = td3_buffer(config, replay)
+    sample = td3_sample_fn(config)
+
+    def own_her(k, o, n):
+        k_idx, k_fut, k_rel = jax.random.split(k, 3)
+        rows, envs = replay_group_sample_index(replay, index, k_idx, o, n)
+        return her_relabel(hb, rows, envs, jax.random.uniform(k_fut, (n,)),
+                           jax.random.uniform(k_rel, (n,)), config.her_strategy,
+                           config.her_relabel_prob, her_max_segment(config),
+                           config.goal_tolerance)
+    return own_her, lambda k, n: sample(k, hb, n)
+
+
+def update_option_policies(config: Config, td3, replay: Replay, key, seed_axis=None
+                           ) -> Tuple[Any, Dict[str, jax.Array]]:
+    """One TD3 per option slot (`config.per_option_td3`): each option's TD3 takes `option_steps`
+    steps on minibatches of its own transitions (`td3.td3_updates_options`, at most
+    `config.td3_updates` steps in all), and the global option's (row 0) `config.td3_updates`
+    steps on minibatches of every transition (`option_sample_fns`): about twice the shared TD3's
+    work. Returns (td3, ``td3/*`` metrics of the options' steps, ``td3/global_*`` of the global
+    option's)."""
+    tcfg = td3_config(config)
+    block = config.td3_sample_block
+    own, everything = option_sample_fns(config, replay)
+    k_own, k_glob = jax.random.split(key)
+    rounds = -(-config.td3_updates // block)
+    td3, om = td3_updates_options(tcfg, td3, option_steps(config, replay), k_own, rounds, own,
+                                  sample_block=block, seed_axis=seed_axis)
+    glob, gm = td3_updates(tcfg, td3_option(td3, GLOBAL_ROW), None, k_glob, config.td3_updates,
+                           lambda k, _, n: everything(k, n), sample_block=block,
+                           seed_axis=seed_axis)
+    td3 = td3_set_option(td3, GLOBAL_ROW, glob)
+    metrics = {f"td3/{k}": v for k, v in om.items()}
+    metrics.update({f"td3/global_{k}": v for k, v in gm.items()})
+    return td3, metrics
+
+
+def init_new_options(config: Config, td3, status_before, status_after):
+    """The per-option TD3s after the chain grew from `status_before` to `status_after` ((K,)
+    option statuses): with ``option_init="copy_global"`` each option created in between starts as
+    a copy of the global option's networks (`td3.td3_copy_option`: fresh optimiser state), as
+    the authors' ``initialize_value_function_with_global_value_function`` (``MBOptionClass.py``,
+    and ``MFOptionClass.py`` in the versions where it is called; DSC's ``OptionClass.py``
+    ``initialize_with_global_ddpg``); "random" leaves them as initialised. The goal option exists
+    from the start and is never copied (the authors' parent-None option)."""
+    if not config.per_option_td3 or config.option_init != "copy_global":
+        return td3
+    created = (status_before == FREE) & (status_after != FREE)
+    return td3_copy_option(td3_config(config), td3, GLOBAL_ROW, created)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -144,7 +247,7 @@ def grow_chain(config: Config, chain, start_xy, is_open=None):
 def dp_value_table(config: Config, chain, td3):
     """Algorithm 1's value table over the chain, valued with the shared critic or each option's
     own (`subgoals.dp_value_table`)."""
-    if config.shared_critic:
+    if not config.per_option_td3:
         return _dp_value_table(chain, value_fn(config, td3), gamma=config.mpc_discount)
     # each option's row of the table is valued with its own critic
     return _dp_value_table(chain, None, gamma=config.mpc_discount,
@@ -214,6 +317,7 @@ def learn(state: Any, env, key, seed_axis=None) -> Tuple[Any, Dict[str, jax.Arra
     chain, dp_table = state.chain, state.dp_table
     if config.hierarchical:
         chain, dp_table, cm = update_chain(config, env, chain, td3, dp_table, key, seed_axis)
+        td3 = init_new_options(config, td3, state.chain.status, chain.status)
         metrics.update(cm)
         finite["classifiers"] = all_finite(chain.clf)
 

@@ -34,7 +34,7 @@ class TrajStep:
     ``seg_id`` identifies the option segment (int32 per env, incremented whenever a new option
     segment starts in that env); hindsight relabelling never crosses a change of ``seg_id``.
     ``option`` (int32 per env) is the option that ran, stored only where every option learns its
-    own TD3 (``Config.shared_critic=False``); None (no leaf) otherwise. One segment is one option.
+    own TD3 (``Config.per_option_td3``); None (no leaf) otherwise. One segment is one option.
     """
 
     obs: jax.Array
@@ -43,6 +43,20 @@ class TrajStep:
     goal: jax.Array
     seg_id: jax.Array
     option: Optional[jax.Array] = None
+
+
+@flax.struct.dataclass
+class RegionStep(TrajStep):
+    """A :class:`TrajStep` with what the region policies of the baseline DSC
+    (``Config.option_policies == "region"``) learn from, as the rollout judged it with the
+    classifiers of that iteration: ``in_target`` (bool), ``next_obs`` lies in the running
+    option's target region (its option reward: 0 and done there, else -1), and ``at_goal``
+    (bool), ``next_obs`` lies in the task's goal region (the global option's reward for every
+    transition). (A type of its own, so that the replays of the other learners, and their
+    checkpoints, keep TrajStep's fields.)"""
+
+    in_target: Optional[jax.Array] = None
+    at_goal: Optional[jax.Array] = None
 
 
 @flax.struct.dataclass
@@ -230,6 +244,46 @@ def replay_sample_index(buf: Replay, key: jax.Array, n: int,
     table, total = replay_valid_positions(buf) if positions is None else positions
     u = jax.random.randint(key, (n,), 0, jnp.maximum(total, 1), dtype=jnp.int32)
     idx = table[u]
+    return idx // buf.num_envs, idx % buf.num_envs
+
+
+def replay_recent(buf: Replay, num_rows: int) -> jax.Array:
+    """``(rows, num_envs)`` bool: the valid entries among the last ``num_rows`` rows written
+    (e.g. one iteration's transitions)."""
+    age = (buf.ptr - 1 - jnp.arange(buf.rows, dtype=jnp.int32)) % buf.rows   # 0: the newest row
+    recent = (age < int(num_rows)) & (age < buf.rows_written)
+    return buf.valid & recent[:, None]
+
+
+@flax.struct.dataclass
+class GroupIndex:
+    """The valid entries of a replay sorted by group (e.g. by the option that collected them),
+    for draws from one group at a time (:func:`replay_group_sample_index`)."""
+
+    order: jax.Array    # (capacity,) int32 flat (row-major) indices, grouped in group order
+    start: jax.Array    # (G,) int32 where each group begins in ``order``
+    count: jax.Array    # (G,) int32 the group's valid entries
+
+
+def replay_group_index(buf: Replay, groups: jax.Array, num_groups: int) -> GroupIndex:
+    """Sort the valid entries by ``groups`` (int, the ``valid`` shape; values outside
+    ``[0, num_groups)`` are left out): one sort, after which every draw from a group is a gather.
+    """
+    G = int(num_groups)
+    g = jnp.where(buf.valid & (groups >= 0) & (groups < G), groups, G).reshape(-1)
+    order = jnp.argsort(g, stable=True).astype(jnp.int32)
+    count = jnp.bincount(g, length=G + 1)[:G].astype(jnp.int32)
+    start = (jnp.cumsum(count) - count).astype(jnp.int32)
+    return GroupIndex(order=order, start=start, count=count)
+
+
+def replay_group_sample_index(buf: Replay, index: GroupIndex, key: jax.Array, group: jax.Array,
+                              n: int) -> Tuple[jax.Array, jax.Array]:
+    """``n`` (row, env) indices drawn uniformly, with replacement, from the valid entries of
+    group ``group`` (traced). A group without entries gives arbitrary indices: check
+    ``index.count`` first."""
+    u = jax.random.randint(key, (n,), 0, jnp.maximum(index.count[group], 1), dtype=jnp.int32)
+    idx = index.order[jnp.minimum(index.start[group] + u, index.order.shape[0] - 1)]
     return idx // buf.num_envs, idx % buf.num_envs
 
 

@@ -13,10 +13,12 @@ Typical use::
     state, metrics = update(cfg, state, batch, key)
     values = td3_value(cfg, state, obs, goal)          # min(Q1, Q2)(s, g, pi(s, g))
 
-One TD3 per option (``Config.shared_critic=False``): :func:`td3_init_per_option` stacks
+One TD3 per option (``Config.per_option_td3``): :func:`td3_init_per_option` stacks
 independent states on a leading option axis, :func:`td3_option` picks one out (per env under a
-vmap), and :func:`td3_updates_per_option` shares one iteration's gradient steps among them in
-proportion to the replay entries each option collected, each on its own entries.
+vmap) and :func:`td3_set_option` writes one back, :func:`td3_copy_option` starts new options as
+copies of another (the global option's), and :func:`td3_updates_options` gives each option a
+given number of gradient steps on minibatches of its own data. (:func:`td3_updates_per_option`
+is the older rule: one budget of steps shared in proportion to each option's replay entries.)
 
 All functions take the frozen config as their first (static) argument; jit them with
 ``static_argnums=0`` or call them inside your own jitted code.
@@ -179,10 +181,14 @@ def _critic_tx(cfg: TD3Config) -> optax.GradientTransformation:
 
 
 def td3_init(key: jax.Array, obs_dim: int, goal_dim: int, action_dim: int, cfg: TD3Config) -> TD3State:
-    """Fresh actor, twin critic, identical targets and Adam states."""
-    for name, v in (("obs_dim", obs_dim), ("goal_dim", goal_dim), ("action_dim", action_dim)):
+    """Fresh actor, twin critic, identical targets and Adam states. ``goal_dim`` 0: networks of
+    the observation alone (pass goals of shape ``(..., 0)``), as the baseline DSC's option
+    policies."""
+    for name, v in (("obs_dim", obs_dim), ("action_dim", action_dim)):
         if int(v) < 1:
             raise ValueError(f"td3_init: {name} must be >= 1, got {v}")
+    if int(goal_dim) < 0:
+        raise ValueError(f"td3_init: goal_dim must be >= 0 (0: no goal input), got {goal_dim}")
     ka, kc = jax.random.split(key)
     obs = jnp.zeros((1, obs_dim), jnp.float32)
     goal = jnp.zeros((1, goal_dim), jnp.float32)
@@ -590,4 +596,112 @@ def td3_updates_per_option(
     metrics = {k: w * v for k, v in _summarise(ms).items()}
     metrics["options_learning"] = w * jnp.sum(
         (jnp.bincount(chosen, length=K) > 0).astype(jnp.float32))
+    return state, metrics
+
+
+def td3_set_option(state: TD3State, option: jax.Array, row: TD3State) -> TD3State:
+    """Per-option states with option ``option``'s (a traced index works) replaced by ``row``."""
+    return jax.tree_util.tree_map(lambda a, b: a.at[option].set(b), state, row)
+
+
+def td3_copy_option(cfg: TD3Config, state: TD3State, source: int, dest: jax.Array) -> TD3State:
+    """Per-option states whose rows where ``dest`` ((K,) bool) holds become copies of row
+    ``source``'s actor, critic and target networks, with fresh Adam states and step count 0.
+
+    This is how the authors start a new option's learner from the global option's
+    (``initialize_value_function_with_global_value_function`` in ``MFOptionClass.py`` and
+    ``MBOptionClass.py``, ``initialize_with_global_ddpg`` in DSC's ``OptionClass.py``): the
+    networks are copied, the optimiser state and the replay are not."""
+    src = td3_option(state, source)
+    fresh = src.replace(actor_opt_state=_actor_tx(cfg).init(src.actor_params),
+                        critic_opt_state=_critic_tx(cfg).init(src.critic_params),
+                        step=jnp.zeros((), jnp.int32))
+    dest = jnp.asarray(dest, bool)
+    return jax.tree_util.tree_map(
+        lambda a, b: jnp.where(dest.reshape(dest.shape + (1,) * (a.ndim - 1)), b[None], a),
+        state, fresh)
+
+
+def option_rounds(steps: jax.Array, block: int, num_rounds: int) -> Tuple[jax.Array, jax.Array]:
+    """The rounds of :func:`td3_updates_options`: (option of each round (R,) int32, the round
+    runs (R,) bool). Option k gets ``round(steps[k] / block)`` rounds of ``block`` steps, in
+    option order; rounds beyond the total (or beyond ``num_rounds``, which then cut the last
+    options short) do not run."""
+    steps = jnp.asarray(steps, jnp.int32)
+    blocks = (steps + block // 2) // int(block)
+    cum = jnp.cumsum(blocks)
+    i = jnp.arange(int(num_rounds), dtype=jnp.int32)
+    option = jnp.minimum(jnp.searchsorted(cum, i, side="right"), steps.shape[0] - 1)
+    return option.astype(jnp.int32), i < cum[-1]
+
+
+def td3_updates_options(
+    cfg: TD3Config,
+    state: TD3State,
+    steps: jax.Array,
+    key: jax.Array,
+    num_rounds: int,
+    sample_fn: Callable[[jax.Array, jax.Array, int], Transition],
+    sample_block: int = 1,
+    seed_axis: Optional[str] = None,
+) -> Tuple[TD3State, Dict[str, jax.Array]]:
+    """Per-option TD3s (:func:`td3_init_per_option`) where option ``k`` takes about ``steps[k]``
+    ((K,) int, traced) gradient steps, each on a minibatch ``sample_fn(key, k, n)`` of its own
+    transitions.
+
+    The steps run in at most ``num_rounds`` (static) rounds of ``sample_block`` (static) steps of
+    one option (:func:`option_rounds`): a ``lax.scan`` over rounds, each gathering its option's
+    state, running :func:`td3_update` ``sample_block`` times and writing it back. A round that
+    does not run is skipped by a ``lax.cond`` (under a seed vmap, ``seed_axis``: when no run of
+    the group runs it), so the cost follows the steps taken, not ``num_rounds``.
+
+    Metrics: means over the steps taken (0 when none); ``actor_updates`` and ``option_steps``
+    count the actor and critic steps; ``options_learning`` the options that took any."""
+    num_rounds, block = int(num_rounds), int(sample_block)
+    if num_rounds < 1:
+        raise ValueError(f"td3_updates_options: num_rounds must be >= 1, got {num_rounds}")
+    if block < 1:
+        raise ValueError(f"td3_updates_options: sample_block must be >= 1, got {block}")
+    K = jax.tree_util.tree_leaves(state)[0].shape[0]
+    n = cfg.batch_size
+    option, runs = option_rounds(steps, block, num_rounds)
+    zero = {k: jnp.zeros((block,), jnp.float32) for k in
+            ("critic_loss", "actor_loss", "actor_updated", "q_mean", "target_mean",
+             "reward_mean")}
+
+    def work(st_all, kk, k):
+        k_s, k_u = jax.random.split(kk)
+        batches = jax.tree_util.tree_map(lambda x: x.reshape((block, n) + x.shape[1:]),
+                                         sample_fn(k_s, k, block * n))
+        st, ms = _scan_updates(cfg, td3_option(st_all, k), (batches, jax.random.split(k_u, block)),
+                               lambda bk: bk, seed_axis)
+        return st, {name: ms[name].astype(jnp.float32) for name in zero}
+
+    def round_(st_all, x):
+        kk, k, on = x
+        if seed_axis is None:
+            def run(s):
+                st, ms = work(s, kk, k)
+                return td3_set_option(s, k, st), ms
+            return jax.lax.cond(on, run, lambda s: (s, zero), st_all)
+        any_on = jax.lax.psum(on.astype(jnp.int32), seed_axis) > 0
+
+        def some(s):
+            st, ms = work(s, kk, k)
+            st = jax.tree_util.tree_map(lambda a, b: jnp.where(on, a, b), st, td3_option(s, k))
+            return td3_set_option(s, k, st), jax.tree_util.tree_map(
+                lambda v: jnp.where(on, v, 0.0), ms)
+        return jax.lax.cond(any_on, some, lambda s: (s, zero), st_all)
+
+    state, ms = jax.lax.scan(round_, state, (jax.random.split(key, num_rounds), option, runs))
+    w = jnp.broadcast_to(runs[:, None], (num_rounds, block)).astype(jnp.float32)
+    n_steps = jnp.sum(w)
+    n_actor = jnp.sum(ms["actor_updated"] * w)
+    metrics = {name: jnp.sum(ms[name] * w) / jnp.maximum(n_steps, 1.0)
+               for name in ("critic_loss", "q_mean", "target_mean", "reward_mean")}
+    metrics["actor_loss"] = jnp.sum(ms["actor_loss"] * w) / jnp.maximum(n_actor, 1.0)
+    metrics["actor_updates"] = n_actor
+    metrics["option_steps"] = n_steps
+    took = jnp.bincount(jnp.where(runs, option, K), length=K + 1)[:K] > 0
+    metrics["options_learning"] = jnp.sum(took.astype(jnp.float32))
     return state, metrics

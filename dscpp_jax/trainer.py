@@ -17,7 +17,9 @@ the learning phase does in `dscpp_jax.learning`; this module holds the state, th
 2. act: uniform random during warm-up; else MPC over the learned model (model based) or the
    actor with Gaussian noise and random actions (model free);
 3. step; the option ends on local success (inside the termination region and within tolerance
-   of the subgoal), on its timeout, or when the episode ends (goal, time limit, NaN physics);
+   of the subgoal; the baselines' region policies: anywhere inside it), on its timeout (the
+   global option's own, `Config.effective_global_option_timeout`), or when the episode ends
+   (goal, time limit, NaN physics);
 4. option outcomes are recorded in the chain (positives: start + last `buffer_len` positions;
    negatives: the start); transitions go to the HER replay (and the model replay);
 5. finished episodes restart, from a diverse start once warm-up is over.
@@ -48,15 +50,17 @@ from dscpp_jax.acting import (FRONTIER_KEY_SALT, GLOBAL_OPTION, GOAL_OPTION, NO_
                               ExecState, InbandState, all_seeds, any_seed, choose_options,
                               diverse_starts, dyn_config, exec_init, frontier_pool, inband_act,
                               inband_metrics, inband_record, mpc_config, option_end,
-                              policy_actions, push_traj, record_outcomes, td3_config)
+                              options_terminate, policy_actions, push_traj,
+                              random_action_probs, record_outcomes, td3_config)
 from dscpp_jax.config import Config
 from dscpp_jax.learning import td3_buffer, td3_sample_fn  # noqa: F401  (re-exported)
 from dscpp_jax.options import ChainConfig, chain_init
-from dscpp_jax.replay import Replay, TrajStep, replay_add, replay_init
+from dscpp_jax.replay import RegionStep, Replay, TrajStep, replay_add, replay_init
 from dscpp_jax.subgoals import dp_table_init
 from dscpp_jax.td3 import TD3State, td3_init, td3_init_per_option, td3_random_prob
 from dscpp_jax.envs.ant_maze import warp_available
 from dscpp_jax.envs.goal_env import join_states, select_state, select_states, split_states
+from dscpp_jax.envs.goals import goal_reached
 
 PyTree = Any
 
@@ -286,14 +290,19 @@ def init_impl(key: jax.Array, config: Config) -> TrainState:
     env_state = jax.vmap(env.reset)(jax.random.split(k_env, B))
     goal = jnp.asarray(env.goal, jnp.float32)
     ex = exec_init(config, env_state.obs, env.goal)
-    if config.shared_critic:
+    region = config.option_policies == "region"
+    if not config.per_option_td3:
         td3 = td3_init(k_td3, od, 2, ad, td3_config(config))
-    else:   # one TD3 per option slot: every leaf gets a leading (max_options,) axis
-        td3 = td3_init_per_option(k_td3, config.max_options, od, 2, ad, td3_config(config))
-    example = TrajStep(obs=jnp.zeros((od,), jnp.float32), action=jnp.zeros((ad,), jnp.float32),
-                       next_obs=jnp.zeros((od,), jnp.float32), goal=jnp.zeros((2,), jnp.float32),
-                       seg_id=jnp.zeros((), jnp.int32),
-                       option=None if config.shared_critic else jnp.zeros((), jnp.int32))
+    else:   # one TD3 per option slot: every leaf gets a leading (max_options,) axis; region
+        # policies see the observation alone (no goal input)
+        td3 = td3_init_per_option(k_td3, config.max_options, od, 0 if region else 2, ad,
+                                  td3_config(config))
+    example = dict(obs=jnp.zeros((od,), jnp.float32), action=jnp.zeros((ad,), jnp.float32),
+                   next_obs=jnp.zeros((od,), jnp.float32), goal=jnp.zeros((2,), jnp.float32),
+                   seg_id=jnp.zeros((), jnp.int32),
+                   option=jnp.zeros((), jnp.int32) if config.per_option_td3 else None)
+    example = (RegionStep(**example, in_target=jnp.zeros((), bool), at_goal=jnp.zeros((), bool))
+               if region else TrajStep(**example))
     replay = replay_init(example, config.replay_capacity, B)
     if config.model_based:
         dyn = learning.init_dynamics(k_dyn, od, ad, config)
@@ -346,6 +355,8 @@ def rollout(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[st
     tcfg = td3_config(config)
     n_succ = state.counters.option_successes if config.hierarchical else state.counters.episode_successes
     rand_prob = td3_random_prob(tcfg, n_succ)
+    region = config.option_policies == "region"
+    goal_xy = jnp.asarray(env.goal, jnp.float32)
     td3, dyn, dp_table = state.td3, state.dyn, state.dp_table
     act_dim = env.action_size
 
@@ -369,10 +380,14 @@ def rollout(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[st
         # Under a seed vmap a batched predicate would run the policy (MPC) on every step of
         # every seed: branch on "all seeds warm up", select per seed inside
         rand_acts = jax.random.uniform(k_rand, (B, act_dim), jnp.float32, -1.0, 1.0)
+        # the random-action probability: run-wide, or per env of its executing option's own
+        # successes (`acting.random_action_probs`)
+        rp = (random_action_probs(config, chain, ex.option, n_succ)
+              if config.exploration_per_option else rand_prob)
         acts = jax.lax.cond(
             all_seeds(warmup, seed_axis), lambda: rand_acts,
             lambda: jnp.where(warmup, rand_acts, policy_actions(
-                config, td3, dyn, obs, ex.subgoal, k_act, True, rand_prob, ex.option)))
+                config, td3, dyn, obs, ex.subgoal, k_act, True, rp, ex.option)))
 
         # STEP THE ENVS (the in-band envs too, in one physics batch or a second call)
         if ib is None:
@@ -403,10 +418,20 @@ def rollout(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[st
             events = ended & ~warmup
             chain = record_outcomes(config, chain, ex, success, events)
 
-        # PUSH TRANSITIONS (s, o, a, s', g) TO THE REPLAYS
-        replay = replay_add(replay, TrajStep(
-            obs=obs, action=acts, next_obs=nes.obs, goal=ex.subgoal, seg_id=ex.seg_id,
-            option=None if config.shared_critic else ex.option), ~nan)
+        # PUSH TRANSITIONS (s, o, a, s', g) TO THE REPLAYS. Region policies also store what their
+        # rewards need, judged with this iteration's classifiers (they are refit only after the
+        # rollout; the authors judge at the end of each option's execution with the classifiers
+        # of that moment): s' in the option's target region, s' at the task goal
+        step = dict(obs=obs, action=acts, next_obs=nes.obs, goal=ex.subgoal, seg_id=ex.seg_id,
+                    option=ex.option if config.per_option_td3 else None)
+        if region:
+            step = RegionStep(**step,
+                              in_target=options_terminate(config, chain, ex.option, next_xy,
+                                                          goal_xy),
+                              at_goal=goal_reached(next_xy, goal_xy, config.goal_tolerance))
+        else:
+            step = TrajStep(**step)
+        replay = replay_add(replay, step, ~nan)
         if config.model_based:
             model_replay = replay_add(model_replay, (obs, acts, nes.obs), ~nan)
 
@@ -422,6 +447,8 @@ def rollout(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[st
         acc["overflow_steps"] = acc["overflow_steps"] + overflow.astype(jnp.int32)
         acc["ep_len_sum"] = acc["ep_len_sum"] + jnp.sum(jnp.where(done, nes.info["steps"], 0))
         acc["on_back_steps"] = acc["on_back_steps"] + jnp.sum(on_back)
+        if config.exploration_per_option:
+            acc["random_prob_sum"] = acc["random_prob_sum"] + jnp.mean(rp)
         ex = ex.replace(option=jnp.where(ended, NO_OPTION, ex.option))
 
         # RESTART FINISHED EPISODES (diverse starts after warm-up). Whether the warm-up is over
@@ -450,6 +477,8 @@ def rollout(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[st
     z = jnp.zeros((), jnp.int32)
     acc0 = dict(episodes=z, episode_successes=z, option_events=z, option_successes=z,
                 nan_episodes=z, ep_len_sum=z, overflow_steps=z, on_back_steps=z)
+    if config.exploration_per_option:
+        acc0["random_prob_sum"] = jnp.zeros((), jnp.float32)
     carry = (state.env_state, state.exec, state.chain, state.replay, state.model_replay, acc0,
              state.inband)
     carry, _ = jax.lax.scan(body, carry, jax.random.split(key, config.steps_per_iter))
@@ -481,7 +510,9 @@ def rollout(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[st
         "train/on_back_share": acc["on_back_steps"].astype(jnp.float32) / (B * config.steps_per_iter),
         "train/physics_overflow_steps": acc["overflow_steps"].astype(jnp.float32),
         "train/warmup": warmup.astype(jnp.float32),
-        "train/random_action_prob": rand_prob,
+        # per-option exploration: the mean over this iteration's steps and envs
+        "train/random_action_prob": (acc["random_prob_sum"] / config.steps_per_iter
+                                     if config.exploration_per_option else rand_prob),
     }
     if front is not None:
         metrics["frontier/pool"] = jnp.sum(front[1]).astype(jnp.float32)
