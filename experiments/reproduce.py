@@ -904,12 +904,12 @@ BEYOND_TITLE = "{}: DSC++ beyond the paper"
 
 
 def fig6(data: Data, out: str) -> Optional[str]:
-    """Figure 6: one panel per maze at the paper's rule, then one per maze where DSC++ has
-    settings beyond the paper in the preset (titled so), with those settings on."""
+    """Figure 6: one panel per maze at the paper's rule, then one per maze where groups of DSC++
+    with the preset's settings beyond the paper exist (titled so)."""
     exps = [e for e in data.figs["6"] if e.tag != "long" and not e.beyond]
     mazes = list(dict.fromkeys(e.env for e in exps))
     panels = [(_maze_title(m, data.args.env_map), [e for e in exps if e.env == m]) for m in mazes]
-    beyond = [e for e in data.figs["6"] if e.beyond]
+    beyond = [e for e in data.figs["6"] if e.beyond and data.dirs(e)]   # drawn where they exist
     panels += [(BEYOND_TITLE.format(_maze_title(m, data.args.env_map)),
                 [e for e in beyond if e.env == m])
                for m in dict.fromkeys(e.env for e in beyond)]
