@@ -16,7 +16,9 @@ Presets (`preset(name, env, algo, **overrides)`, the table `PRESET_TABLE`):
   episode length and number of episodes.
 - `fast`: tuned for wall-clock per environment family: many parallel environments, a smaller
   model on the point-mass twins, in-band evaluation on the ant mazes, and on the ant mazes with
-  junctions and dead ends the chain's frontier (`FRONTIER_TABLE`).
+  junctions and dead ends the chain's frontier for DSC++ (`FRONTIER_TABLE`). The paper's
+  baselines (`PAPER_BASELINES`) get nothing beyond the paper in any preset;
+  `paper_rule_overrides` turns DSC++'s extras off.
 
 Why each preset value was chosen, with the study behind it: docs/presets.md.
 """
@@ -50,15 +52,22 @@ CHOICES: dict[str, tuple] = dict(
     td3_dtype=DTYPES, mpc_dtype=DTYPES, mpc_backend=KERNEL_BACKENDS, svm_backend=KERNEL_BACKENDS,
     option_init=("copy_global", "random"))
 
+# The paper's baselines (Figure 5's ladder below DSC++): every preset gives them the paper's
+# settings and nothing beyond (no frontier, no medium-maze TD3, no action penalty).
+PAPER_BASELINES = ("dsc", "dual")
+DSCPP_ALGOS = ("mb_dscpp", "mf_dscpp")
 # The ant mazes and learners whose skill chains use the chain's frontier in the `fast` preset
-# (beyond the paper; dscpp_jax.frontier); `FRONTIER_TABLE` holds what it sets.
-FRONTIER_CHAINS = dict(medium=HIERARCHICAL_ALGOS, large=HIERARCHICAL_ALGOS,
-                       four_rooms=("mb_dscpp", "mf_dscpp", "dsc"))
+# (beyond the paper; dscpp_jax.frontier): DSC++'s, not the baselines'. `FRONTIER_TABLE` holds
+# what it sets.
+FRONTIER_CHAINS = dict(medium=DSCPP_ALGOS, large=DSCPP_ALGOS, four_rooms=DSCPP_ALGOS)
 FRONTIER_PRESET = dict(frontier_start_prob=0.5, frontier_parent=True, frontier_radius=6.0,
                        frontier_inner_radius=3.0)
-# The TD3 of every model-free learner (mf_dscpp, dsc, dual, td3_her) on the ant medium maze in the
-# `fast` preset (beyond the paper): HER's `future` strategy and a larger action penalty.
+# The TD3 of MF-DSC++ and TD3+HER on the ant medium maze in the `fast` preset (beyond the paper):
+# HER's `future` strategy and a larger action penalty.
 MEDIUM_MODEL_FREE_TD3 = dict(her_strategy="future", her_relabel_prob=0.8, td3_action_l2=2.0)
+# Preset entries beyond the paper besides FRONTIER_TABLE (`preset_fields(beyond_paper=False)`
+# leaves them out).
+BEYOND_PAPER_ENTRIES = (MEDIUM_MODEL_FREE_TD3,)
 # Config fields that were removed, with the value that meant "off" (their default then): a saved
 # run that set one of them otherwise cannot be reproduced by this version (`Config.from_saved`).
 # Runs written since also record every default beside their config ("config_defaults").
@@ -620,9 +629,13 @@ PRESET_TABLE: dict[str, dict[tuple[str, str], dict[str, Any]]] = {
                                      td3_action_l2=0.0, td3_dtype="float32"),
         ("ant", "model_free"): dict(td3_updates_per_step=1.0, td3_batch_size=512, td3_lr=-1.0,
                                     td3_action_l2=1.0, td3_dtype="bfloat16"),
+        # the paper's baselines: no action penalty (the original has none)
+        ("ant", "dsc"): dict(td3_action_l2=0.0),
+        ("ant", "dual"): dict(td3_action_l2=0.0),
         ("u_maze", "*"): dict(mpc_samples=2048),
         ("four_rooms", "*"): dict(gestation=10),
-        ("medium", "model_free"): MEDIUM_MODEL_FREE_TD3,
+        ("medium", "mf_dscpp"): MEDIUM_MODEL_FREE_TD3,
+        ("medium", "td3_her"): MEDIUM_MODEL_FREE_TD3,
     },
 }
 # FRONTIER_TABLE[preset][(env selector, learner selector)]: the entries applied, in the same
@@ -663,10 +676,13 @@ def frontier_chain(name: str, env: str, algo: str, diverse_starts: bool = True) 
     return name in FRONTIER_TABLE and algo in FRONTIER_CHAINS.get(env, ()) and bool(diverse_starts)
 
 
-def preset_fields(name: str, env: str, algo: str, diverse_starts: bool = True) -> dict[str, Any]:
+def preset_fields(name: str, env: str, algo: str, diverse_starts: bool = True,
+                  beyond_paper: bool = True) -> dict[str, Any]:
     """The fields preset `name` sets for `env` and `algo`, before the caller's overrides:
     env, algo and preset, then the matching `PRESET_TABLE` entries and, where the chain's frontier
-    is on, the matching `FRONTIER_TABLE` entries, merged in that order (later entries win)."""
+    is on, the matching `FRONTIER_TABLE` entries, merged in that order (later entries win).
+    `beyond_paper=False` leaves out the entries beyond the paper (the frontier's and
+    `BEYOND_PAPER_ENTRIES`)."""
     if name not in PRESETS:
         raise ValueError(f"unknown preset {name!r}; choose one of {PRESETS}")
     if env not in ENV_NAMES:
@@ -677,11 +693,24 @@ def preset_fields(name: str, env: str, algo: str, diverse_starts: bool = True) -
                          f"{list(ALGOS)}")
     fields: dict[str, Any] = dict(env=env, algo=algo, preset=name)
     for _, entry in matching_entries(PRESET_TABLE[name], env, algo):
-        fields.update(entry)
-    if frontier_chain(name, env, algo, diverse_starts):
+        if beyond_paper or not any(entry is e for e in BEYOND_PAPER_ENTRIES):
+            fields.update(entry)
+    if beyond_paper and frontier_chain(name, env, algo, diverse_starts):
         for _, entry in matching_entries(FRONTIER_TABLE[name], env, algo):
             fields.update(entry)
     return fields
+
+
+def paper_rule_overrides(name: str, env: str, algo: str) -> dict[str, Any]:
+    """The overrides that turn preset `name`'s settings beyond the paper off for `env` and
+    `algo` (the chain's frontier and `BEYOND_PAPER_ENTRIES`): each field whose value differs,
+    at its value without them, leaving out fields that are then without effect
+    (`Config.inert_fields`); {} where the preset adds nothing beyond the paper."""
+    full = Config(**preset_fields(name, env, algo))
+    paper = Config(**preset_fields(name, env, algo, beyond_paper=False))
+    skip = paper.inert_fields()
+    return {k: v for k, v in paper.to_dict().items()
+            if k not in skip and getattr(full, k) != v}
 
 
 def preset(name: str = "fast", env: str = "point_u_maze", algo: str = "mb_dscpp",

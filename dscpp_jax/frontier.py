@@ -1,8 +1,8 @@
 """The chain's frontier: free space next to an option's region that no mature option covers yet.
 
 Beyond the paper (both uses are off by default and on in the ant ``fast`` preset where they were
-measured to pay: every skill chain on the mazes with dead ends, and every one but dual's on four
-rooms, ``config.FRONTIER_CHAINS``; ``docs/training.md``, "The chain's frontier").
+measured to pay: DSC++'s skill chains on the mazes with dead ends and on four rooms, never the
+paper's baselines, ``config.FRONTIER_CHAINS``; ``docs/training.md``, "The chain's frontier").
 The paper grows a linear chain: each new option targets the newest mature one, and learns its
 initiation region from wherever its executions happen to succeed. With diverse starts spread
 uniformly over the maze, that is where most free space lies, so at a junction the chain can turn

@@ -13,9 +13,16 @@ of successful rollouts) and negative examples (start states of failed rollouts),
 
 Initiation = optimistic OR pessimistic; other options target the pessimistic region.
 
-Single variant (baseline DSC, Bagaria & Konidaris 2020): one classifier, a two-class SVC when
-negatives exist (balanced from 10 negatives) else a one-class SVM (ν = 0.1); it is both the
-initiation set and the region the next option targets (stored in both fields).
+Single variant (baseline DSC, Bagaria & Konidaris 2020; the authors' model-free baseline with
+``--use_pessimistic_clf_only``): one model, the one-class ν-SVM (ν = ``nu_single``) fit
+
+* with negatives: on every training point, positives and negatives together, that the two-class
+  SVC (as above) calls positive (the previous model is kept when there are none), as the
+  authors' ``train_two_class_classifier`` does;
+* with positives only: on the positives.
+
+That one model is both the initiation set and the region the next option targets (stored in both
+fields, so optimistic = pessimistic).
 
 Every switch above is a traced value on fixed, padded arrays + masks, so a fit is jit-able and
 ``fit_initiation_batch`` refits a batch of options at once with ``vmap`` (each problem's SMO loop
@@ -59,8 +66,8 @@ class InitiationConfig:
     variant: "dual" (optimistic + pessimistic, DSC++) or "single" (baseline DSC).
     gamma: RBF width for x,y features (the original's "auto" = 1 / n_features = 0.5).
     C: SVC box constraint. nu_pessimistic / nu_optimistic: one-class ν of the pessimistic model
-    and of the positives-only optimistic model. nu_single: ν of the single variant's one-class
-    model. balanced_min_negatives: class_weight "balanced" from this many negatives on.
+    and of the positives-only optimistic model. nu_single: ν of the single variant's one model
+    (a one-class SVM). balanced_min_negatives: class_weight "balanced" from this many negatives on.
     tol, max_iter: SMO stopping tolerance and step cap (None: ``svm.default_max_iter``).
     pessimistic_examples: what the dual variant's pessimistic model is fit on: "positives" (the
     positives the SVC calls positive, the paper) or "all" (every training point the SVC calls
@@ -103,7 +110,7 @@ class InitiationConfig:
 class InitiationClassifiers:
     """One option's classifiers over ``num_pos + num_neg`` padded training slots.
 
-    optimistic / pessimistic: SVMModel (identical in the single variant).
+    optimistic / pessimistic: SVMModel (identical in the single variant: its one model).
     optimistic_fitted / pessimistic_fitted: () bool; an unfitted model contains nothing.
     """
 
@@ -174,7 +181,8 @@ def _fit(pos_xy, pos_mask, neg_xy, neg_mask, prev: InitiationClassifiers, cfg: I
     gamma = jnp.float32(cfg.gamma)
     tol = jnp.float32(cfg.tol)
 
-    # first model: SVC with negatives, else one-class on the positives (one SMO run either way)
+    # first model: SVC with negatives, else one-class on the positives (one SMO run either way;
+    # the single variant's is only the SVC that picks the one-class model's points)
     nu_first = cfg.nu_optimistic if cfg.variant == "dual" else cfg.nu_single
     svc = svm.svc_problem(labels, all_slots, jnp.float32(cfg.C), balanced)
     n = X.shape[0]
@@ -186,22 +194,26 @@ def _fit(pos_xy, pos_mask, neg_xy, neg_mask, prev: InitiationClassifiers, cfg: I
     opt = _select(has_pos, first, prev.optimistic)
     opt_fitted = has_pos | prev.optimistic_fitted
 
-    if cfg.variant == "single":
-        return InitiationClassifiers(optimistic=opt, pessimistic=opt, optimistic_fitted=opt_fitted,
-                                     pessimistic_fitted=opt_fitted)
-
-    # pessimistic: one-class ν on the (positive) training points the SVC calls positive; all
-    # positives when there was no SVC
+    # pessimistic (the single variant's one model): one-class ν on the training points the SVC
+    # calls positive (the dual variant: its positives only, unless pessimistic_examples="all";
+    # the single variant: positives and negatives, as the authors' code); all positives when
+    # there was no SVC
+    single = cfg.variant == "single"
     called_pos = f_train >= 0  # the SVC's own training predictions (two-class rule: f >= 0)
-    candidates = all_slots if cfg.pessimistic_examples == "all" else pos_slots
+    candidates = all_slots if single or cfg.pessimistic_examples == "all" else pos_slots
     pes_slots = jnp.where(two_class, candidates & called_pos, pos_slots)
     any_pes = jnp.any(pes_slots)
-    pes_problem = svm.one_class_problem(X, pes_slots, jnp.float32(cfg.nu_pessimistic), gamma,
-                                         svm.one_class_start_bound(cfg.nu_pessimistic, n))
+    nu_pes = cfg.nu_single if single else cfg.nu_pessimistic
+    pes_problem = svm.one_class_problem(X, pes_slots, jnp.float32(nu_pes), gamma,
+                                         svm.one_class_start_bound(nu_pes, n))
     pes_new, _ = svm.fit_problem(X, pes_slots, pes_problem, True, gamma, tol, max_iter, inner)
     pes = _select(any_pes, pes_new, prev.pessimistic)
+    pes_fitted = any_pes | prev.pessimistic_fitted
+    if single:
+        return InitiationClassifiers(optimistic=pes, pessimistic=pes, optimistic_fitted=pes_fitted,
+                                     pessimistic_fitted=pes_fitted)
     return InitiationClassifiers(optimistic=opt, pessimistic=pes, optimistic_fitted=opt_fitted,
-                                 pessimistic_fitted=any_pes | prev.pessimistic_fitted)
+                                 pessimistic_fitted=pes_fitted)
 
 
 def fit_initiation(pos_xy, pos_mask, neg_xy, neg_mask, cfg: InitiationConfig = InitiationConfig(),

@@ -69,6 +69,7 @@ class ChainConfig:
 
     max_options: int = 12        # capacity K, including the global and the goal option
     gestation: int = 10          # successes before an option is mature
+    initiation_period: int = 0   # further successes of the newest mature option before its child
     buffer_len: int = 50         # positions kept after the start state of a positive trajectory
     option_timeout: int = 200    # steps before an execution counts as a failure (used by callers)
     max_pos_traj: int = 100      # positive trajectories kept per option (ring)
@@ -94,6 +95,9 @@ class ChainConfig:
         need(self.max_options >= 3, f"max_options={self.max_options} must be >= 3 (global option, "
              "goal option and at least one chain link)")
         need(self.gestation >= 1, f"gestation={self.gestation} must be >= 1")
+        need(self.initiation_period >= 0,
+             f"initiation_period={self.initiation_period} must be >= 0 (0: a child as soon as its "
+             "parent is mature)")
         need(self.buffer_len >= 1, f"buffer_len={self.buffer_len} must be >= 1")
         need(self.option_timeout >= 1, f"option_timeout={self.option_timeout} must be >= 1")
         need(self.max_pos_traj >= 1, f"max_pos_traj={self.max_pos_traj} must be >= 1")
@@ -499,14 +503,18 @@ def mature_options(chain: Chain) -> Chain:
 
 def add_option(chain: Chain, parent, start_xy) -> Chain:
     """Algorithm 3, lines 7-9: if no option is in gestation, row ``parent`` (int32; -1: none) is
-    mature with fitted classifiers, and no mature option's initiation set holds ``start_xy``, a
-    new option is created in the next free row, in gestation, targeting ``parent``. When the table
-    is full, ``capacity_hit`` is set instead (sticky)."""
-    K = chain.cfg.max_options
+    mature with fitted classifiers (and, with ``ChainConfig.initiation_period`` > 0, has at least
+    gestation + initiation_period successes), and no mature option's initiation set holds
+    ``start_xy``, a new option is created in the next free row, in gestation, targeting
+    ``parent``. When the table is full, ``capacity_hit`` is set instead (sticky)."""
+    cfg = chain.cfg
+    K = cfg.max_options
     status = chain.status
     parent_c = jnp.clip(parent, 0)
     want = ((~jnp.any(status == GESTATION)) & (parent >= 0) & chain.fitted[parent_c]
             & ~start_covered(chain, start_xy))
+    if cfg.initiation_period > 0:   # DSC's initiation period (static: 0 adds nothing)
+        want = want & (chain.successes[parent_c] >= cfg.gestation + cfg.initiation_period)
     n = chain.num_options
     room = n < K
     create = want & room
@@ -529,11 +537,12 @@ def grow_chain(chain: Chain, start_xy) -> Chain:
     """Maturity, then chain growth (call after :func:`refit`, once per learning iteration).
 
     1. Options in gestation with at least ``gestation`` successes become mature.
-    2. If no option is in gestation, the newest mature option has fitted classifiers, and no mature
-       option's initiation set holds ``start_xy`` (pass the env's start state, ``env.start``), a
-       new option is created in the next free row, in gestation, whose parent is the newest mature
-       option (:func:`add_option`). When the table is full, ``capacity_hit`` is set instead
-       (sticky).
+    2. If no option is in gestation, the newest mature option has fitted classifiers (and its
+       initiation period is done: ``gestation + initiation_period`` successes, baseline DSC's
+       rule), and no mature option's initiation set holds ``start_xy`` (pass the env's start
+       state, ``env.start``), a new option is created in the next free row, in gestation, whose
+       parent is the newest mature option (:func:`add_option`). When the table is full,
+       ``capacity_hit`` is set instead (sticky).
 
     Beyond the paper, ``dscpp_jax.frontier.grow_chain`` picks the parent by the chain's frontier.
     """

@@ -241,6 +241,7 @@ def action_size(config: Config) -> int:
 def chain_config(config: Config) -> ChainConfig:
     """The skill chain's static sizes and classifier settings of `config`."""
     return ChainConfig(max_options=config.max_options, gestation=config.gestation,
+                       initiation_period=config.effective_initiation_period,
                        buffer_len=config.buffer_len, option_timeout=config.option_timeout,
                        max_pos_traj=config.max_pos_traj, max_neg=config.max_neg,
                        variant=config.classifier_variant, goal_tolerance=config.goal_tolerance,

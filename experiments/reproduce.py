@@ -10,9 +10,13 @@ against what was measured.
         --mazes u_maze --algos dsc,mf_dscpp --seeds 0-1 --episodes 40 \\
         --runs-root /tmp/r --out /tmp/o
 
+    # the train commands of the groups still to train, to run side by side on one GPU
+    python experiments/reproduce.py --fig 5,6,A2,A3 --print-commands --time-budget 3000
+
 One `train --seeds` program per (algorithm, env, subgoal, seeds), in a group directory named
 after them under --runs-root (no time stamp; `-long` for the 12,000-episode TD3, `-a1` for
-appendix Figure 1's own runs, `-optcritic` for appendix Figure 2's one critic per option), so that
+appendix Figure 1's own runs, `-optcritic` for appendix Figure 2's one critic per option,
+`-paperrule` for a group with the preset's settings beyond the paper turned off), so that
 the next call finds it; figures that need the same group (MF-DSC++ on U-maze: Figures 5, 6, A2,
 A3) share it, trained once. A group whose seeds have all reached the schedule is skipped, one
 with a checkpoint is continued with `train --resume` (also to a longer --episodes), one without
@@ -28,6 +32,12 @@ marks claims whose runs have not finished.
 
 Protocol (defaults, as in the paper): 5 seeds, 2,001 episodes of at most 1,000 steps (the
 preset's episode length), success from the task start, mean and standard error over seeds.
+Figures 5, 6, A2 and A3 compare the learners at the paper's rule: where the preset gives DSC++
+settings beyond the paper (the chain's frontier, the medium maze's model-free TD3), their groups
+turn them off (`-paperrule`, `dscpp_jax.config.paper_rule_overrides`; a group of the preset's own
+name made without them serves too); the paper's baselines have none in any preset. Figure 6
+shows the preset's DSC++ groups with those settings on in panels of their own, titled "DSC++
+beyond the paper", drawn where they exist (`--beyond-paper` trains them).
 Figure 4 and appendix Figure 1 train on Ant-Reacher for 1,000 episodes; Figure 6's dashed line
 is TD3+HER after 12,000 episodes (`--long-td3` schedules it). Appendix Figure 2 compares MF-DSC++
 on U-maze with its one shared critic (Figure 5's and 6's group) and with one TD3 actor and critic
@@ -90,8 +100,10 @@ class Exp:
     seeds: str
     subgoal: str = "robust"
     tag: str = ""              # "" | "long" (Fig. 6's 12,000-episode TD3) | "a1" (A1's own)
-    #                            | "optcritic" (A2's one critic per option)
+    #                            | "optcritic" (A2's one critic per option) | "paperrule" (the
+    #                            preset's settings beyond the paper turned off)
     sets: tuple = ()           # extra --set values of this group
+    beyond: bool = False       # drawn as beyond the paper (the preset's extras on), not claimed
 
     def run_env(self, env_map: dict) -> str:
         return env_map.get(self.env, self.env)
@@ -123,22 +135,52 @@ def parse_figs(text: str) -> tuple:
     return tuple(dict.fromkeys(out))
 
 
+def _set_text(value) -> str:
+    """A Config value as `--set` writes it."""
+    return str(value).lower() if isinstance(value, bool) else str(value)
+
+
+def paper_rule_sets(maze: str, algo: str, args) -> tuple:
+    """The --set pairs that train `algo` on `maze` (after --env-map) at the paper's rule: the
+    preset's settings beyond the paper turned off (`config.paper_rule_overrides`: the chain's
+    frontier, the medium maze's model-free TD3); () where the preset adds none."""
+    from dscpp_jax.config import paper_rule_overrides
+    over = paper_rule_overrides(args.preset, args.env_map.get(maze, maze), algo)
+    return tuple(f"{k}={_set_text(v)}" for k, v in over.items())
+
+
+def paper_exp(maze: str, algo: str, episodes: int, seeds: str, args, tag: str = "",
+              sets: tuple = ()) -> Exp:
+    """The group of `algo` on `maze` at the paper's rule: the preset's own group where the preset
+    adds nothing beyond the paper there, else one tagged `paperrule` with those extras off."""
+    off = paper_rule_sets(maze, algo, args)
+    if off:
+        tag = "paperrule" + (f"-{tag}" if tag else "")
+    return Exp(maze, algo, episodes, seeds, tag=tag, sets=off + tuple(sets))
+
+
 def plan(args) -> dict:
-    """{figure: [Exp, ...]} for the requested figures."""
+    """{figure: [Exp, ...]} for the requested figures. Figures 5, 6, A2 and A3 compare the
+    learners at the paper's rule (`paper_exp`); Figure 6 also shows DSC++ with the preset's
+    settings beyond the paper, where it has some, in panels of their own (`Exp.beyond`)."""
+    from dscpp_jax.config import DSCPP_ALGOS
     figs = parse_figs(args.fig)
     algos = set(_csv_list(args.algos, FIG6_ALGOS + ("dual",)))
     mazes = _csv_list(args.mazes, MAZES)
     out: dict[str, list] = {}
     ep, seeds = args.episodes, args.seeds
     if "6" in figs:
-        out["6"] = [Exp(m, a, ep, seeds) for m in mazes for a in FIG6_ALGOS if a in algos]
+        out["6"] = [paper_exp(m, a, ep, seeds, args) for m in mazes for a in FIG6_ALGOS
+                    if a in algos]
+        out["6"] += [Exp(m, a, ep, seeds, beyond=True) for m in mazes for a in DSCPP_ALGOS
+                     if a in algos and paper_rule_sets(m, a, args)]
         if args.long_td3:
             out["6"].append(Exp("u_maze", "td3_her", args.long_td3_episodes,
                                 args.long_td3_seeds or seeds, tag="long"))
     if "5" in figs:
-        out["5"] = [Exp("u_maze", a, ep, seeds) for a in FIG5_ALGOS if a in algos]
+        out["5"] = [paper_exp("u_maze", a, ep, seeds, args) for a in FIG5_ALGOS if a in algos]
     if "A3" in figs:
-        out["A3"] = [Exp("u_maze", a, ep, seeds) for a in A3_ALGOS if a in algos]
+        out["A3"] = [paper_exp("u_maze", a, ep, seeds, args) for a in A3_ALGOS if a in algos]
     # Appendix Figure 1 needs checkpoints from early in training: its groups save one every
     # --a1-every iterations and keep them all (--a1-keep). With --a1-seeds equal to --seeds it
     # shares Figure 4's groups, which then do the same; otherwise it trains its own (by default
@@ -160,8 +202,9 @@ def plan(args) -> dict:
     # Appendix Figure 2: MF-DSC++ on U-maze, shared critic (the very group of Figures 5 and 6,
     # trained once) vs one critic per option (its own group, `-optcritic`)
     if "A2" in figs and "mf_dscpp" in algos:
-        out["A2"] = [Exp("u_maze", "mf_dscpp", ep, seeds),
-                     Exp("u_maze", "mf_dscpp", ep, seeds, tag="optcritic", sets=A2_SETS)]
+        out["A2"] = [paper_exp("u_maze", "mf_dscpp", ep, seeds, args),
+                     paper_exp("u_maze", "mf_dscpp", ep, seeds, args, tag="optcritic",
+                               sets=A2_SETS)]
     return out
 
 
@@ -191,6 +234,17 @@ def group_dir(exp: Exp, args) -> str:
     path = os.path.join(args.runs_root, exp.name(args.env_map))
     if os.path.exists(path):
         return path
+    if exp.tag.startswith("paperrule"):
+        # a group of the preset's own name made without the settings beyond the paper (before
+        # the preset had them) is the paper's rule's group
+        plain = dataclasses.replace(exp, tag=exp.tag[len("paperrule"):].lstrip("-"))
+        found = group_dir(plain, args)
+        if os.path.isfile(os.path.join(found, "group.json")):
+            try:
+                if not config_mismatch(found, exp, args):
+                    return found
+            except (OSError, ValueError, KeyError, TypeError):
+                pass
     want = set(parse_seeds(exp.seeds))
     sub = "-dp" if exp.subgoal == "dp" else ""
     tag = f"-{exp.tag}" if exp.tag else ""
@@ -309,58 +363,74 @@ def _listed(names) -> str:
     return names[0] if len(names) == 1 else f"{', '.join(names[:-1])} and {names[-1]}"
 
 
+def beyond_words(maze: str, args) -> str:
+    """What the preset adds beyond the paper for DSC++ on `maze`, in a few words ("" if
+    nothing)."""
+    from dscpp_jax.config import DSCPP_ALGOS, MEDIUM_MODEL_FREE_TD3, paper_rule_overrides
+    over = {a: paper_rule_overrides(args.preset, args.env_map.get(maze, maze), a)
+            for a in DSCPP_ALGOS}
+    said = set().union(*over.values())
+    words = []
+    if {"frontier_start_prob", "frontier_parent"} & said:
+        words.append("the chain's frontier")
+    if "max_options" in said:
+        words.append("more option rows")
+    if "td3_updates_per_step" in over["mb_dscpp"]:
+        words.append("MB-DSC++ more TD3 steps per transition")
+    if set(MEDIUM_MODEL_FREE_TD3) & set(over["mf_dscpp"]):
+        words.append("MF-DSC++ the medium maze's TD3")
+    return ", ".join(words)
+
+
 def _frontier_note(data, args) -> str:
-    """A sentence for the protocol line on what the preset adds beyond the paper for the groups
-    of this call: the chain's frontier for some skill chains (dscpp_jax.config.FRONTIER_PRESET)
-    and, on the medium maze, the option rows, MB-DSC++'s TD3 ratio and the model-free learners'
-    TD3 (MEDIUM_MODEL_FREE_TD3); else ""."""
-    from dscpp_jax.config import FRONTIER_PRESET, HIERARCHICAL_ALGOS, MEDIUM_MODEL_FREE_TD3, preset
-    envs = {e.run_env(args.env_map) for e in data.info}
-    on, run_env = {}, {}     # per maze: the call's learners whose skill chain uses the frontier
-    for e in data.info:
-        run_env[e.env] = e.run_env(args.env_map)
-        if preset(args.preset, run_env[e.env], e.algo).frontier_on:
-            on.setdefault(e.env, set()).add(e.algo)
-    every = sorted(m for m in on if all(preset(args.preset, run_env[m], a).frontier_on
-                                        for a in HIERARCHICAL_ALGOS))
-    some = [f"{_listed([NAMES[a] for a in HIERARCHICAL_ALGOS if a in on[m]])} on {m}"
-            for m in sorted(on) if m not in every]
+    """Sentences for the protocol line on the preset's settings beyond the paper for the groups
+    of this call: which groups turn them off to train at the paper's rule (tag `paperrule`,
+    `dscpp_jax.config.paper_rule_overrides`), which are drawn with them on (Figure 6's panels
+    "DSC++ beyond the paper"), and the ant preset's action penalty of the goal-conditioned
+    model-free learners; "" where there is none."""
+    from dscpp_jax.config import PAPER_BASELINES, preset
+    exps = list(data.info)
     parts = []
-    if on:
-        sets = " ".join(f"{k}={str(v).lower() if isinstance(v, bool) else format(v, 'g')}"
-                        for k, v in FRONTIER_PRESET.items())
-        who = ([f"the preset's skill chains on {_listed(every)}"] if every else []) + some
-        parts.append(f"the chain's frontier for {' and for '.join(who)} (`{sets}`; "
-                     f"`docs/training.md`, \"The chain's frontier\")")
-    if "medium" in envs:
-        mb = preset(args.preset, "medium", "mb_dscpp")
-        ratio = mb.td3_updates_per_step
-        extra = []
-        if mb.max_options != preset(args.preset, "u_maze", "mb_dscpp").max_options:
-            extra.append(f"every skill chain {mb.max_options} option rows")
-        if ratio != preset(args.preset, "u_maze", "mb_dscpp").td3_updates_per_step:
-            extra.append(f"MB-DSC++ {ratio:g} TD3 step{'' if ratio == 1 else 's'} per transition")
-        mf, mf_u = (preset(args.preset, m, "mf_dscpp") for m in ("medium", "u_maze"))
-        if any(getattr(mf, k) != getattr(mf_u, k) for k in MEDIUM_MODEL_FREE_TD3):
-            extra.append(f"every model-free learner HER's `{mf.her_strategy}` strategy with "
-                         f"{mf.her_relabel_prob:g} of the sampled transitions relabelled and an "
-                         f"action penalty of {mf.td3_action_l2:g} (MF-DSC++, DSC, dual and "
-                         f"TD3+HER alike)")
-        if extra:
-            parts.append("on the medium maze: " + ", ".join(extra[:-1])
-                         + (" and " if len(extra) > 1 else "") + extra[-1])
-    if not parts:
-        return ""
-    return " Beyond the paper, " + "; ".join(parts) + "."
+    off = {}
+    for e in exps:
+        if e.tag.startswith("paperrule"):
+            off.setdefault(e.name(args.env_map).split("-g")[0], paper_rule_sets(e.env, e.algo,
+                                                                                args))
+    if off:
+        parts.append("At the paper's rule, the groups tagged `-paperrule` turn off the preset's "
+                     "settings beyond the paper (`dscpp_jax.config.paper_rule_overrides`): "
+                     + "; ".join(f"{k}: `{' '.join(v)}`" for k, v in off.items()) + ".")
+    beyond = sorted({e.env for e in exps if e.beyond})
+    if beyond:
+        parts.append("Figure 6's panels \"DSC++ beyond the paper\" show the preset's own DSC++ "
+                     "groups, with them on ("
+                     + "; ".join(f"{m}: {beyond_words(m, args)}" for m in beyond)
+                     + "; `docs/presets.md`); they are not claims of the paper.")
+    penalty = sorted({e.algo for e in exps
+                      if preset(args.preset, e.run_env(args.env_map), e.algo).td3_action_l2 > 0
+                      and e.algo not in PAPER_BASELINES})
+    if penalty:
+        parts.append(f"{_listed([NAMES[a] for a in penalty])} keep the preset's action penalty "
+                     "(`td3_action_l2`, OpenAI Baselines' HER); the paper's baselines have none.")
+    return (" " + " ".join(parts)) if parts else ""
+
+
+def _mismatch_or_error(group_dir: str, exp: Exp, args) -> list:
+    """`config_mismatch`, or one line saying why the group's config could not be read."""
+    try:
+        return config_mismatch(group_dir, exp, args)
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        return [f"config unreadable ({e})"]
 
 
 def mismatch_lines(data, args) -> list:
     """One line per group on disk that was made with other settings than this call would train
     it with (`config_mismatch`): the figures draw it as made, and the training leaves it as it
-    is, so the README says so."""
+    is, so the README says so. (A group that Figure 6's panels beyond the paper do not draw, made
+    without those settings, is not listed for them.)"""
     out = []
     for exp, info in data.info.items():
-        if not os.path.exists(os.path.join(info["dir"], "group.json")):
+        if not os.path.exists(os.path.join(info["dir"], "group.json")) or exp.beyond:
             continue
         try:
             bad = config_mismatch(info["dir"], exp, args)
@@ -511,6 +581,61 @@ def train_one(exp: Exp, args, gpus, per_gpu: int = 1) -> str:
     return "resumed" if resume else "trained"
 
 
+def pending_commands(args, figs: dict) -> list:
+    """[(group name, state, command line or None)] for every group the figures need that has not
+    reached its schedule: `python -m dscpp_jax.cli train ...` to start it (state "new") or to
+    continue it (--resume; "unfinished"), each writing the directory the report reads. A group
+    made with other settings ("mismatch") or a directory without a checkpoint ("stale") gets no
+    command: move it away first. Finished groups are left out."""
+    out = []
+    exps = list(dict.fromkeys(e for es in figs.values() for e in es
+                              if args.beyond_paper or not e.beyond))
+    exps.sort(key=lambda e: e.tag == "long")
+    names = {}
+    for e in exps:
+        names.setdefault(e.name(args.env_map), e)
+    for name, exp in names.items():
+        gdir = group_dir(exp, args)
+        sched = schedule(exp, args)
+        st = group_state(gdir, sched)
+        named = os.path.join(args.runs_root, name)
+        if st in ("new", "stale") and gdir != named:
+            gdir = named
+            st = group_state(gdir, sched)
+        if st == "finished" and not config_mismatch(gdir, exp, args):
+            continue
+        if st in ("finished", "unfinished") and config_mismatch(gdir, exp, args):
+            out.append((os.path.basename(gdir), "mismatch", None))
+            continue
+        if st == "stale":
+            out.append((os.path.basename(gdir), "stale", None))
+            continue
+        cmd = train_command(exp, _shown_path(gdir), args, resume=st == "unfinished")
+        out.append((os.path.basename(gdir), st, " ".join(["python"] + cmd[1:])))
+    return out
+
+
+def print_commands(args, figs: dict) -> int:
+    """Print one train command per group still to train (`pending_commands`), with the memory
+    share that lets them run side by side on one GPU; returns how many there are."""
+    pend = pending_commands(args, figs)
+    runnable = [p for p in pend if p[2]]
+    share = "" if len(runnable) < 2 else \
+        f"XLA_PYTHON_CLIENT_MEM_FRACTION={0.9 / len(runnable):.2f} "
+    say(f"# {len(runnable)} group(s) to train for figure(s) {', '.join(figs)} under "
+        f"{_shown_path(args.runs_root)} (run from {ROOT}; each line may run beside the others on "
+        "one GPU, and again to continue after its --time-budget)")
+    for name, st, cmd in pend:
+        if cmd is None:
+            why = ("made with other settings than this version's preset (see the README)"
+                   if st == "mismatch" else "a directory without a checkpoint")
+            say(f"# {name}: {why}; move it away to train it")
+        else:
+            say(f"# {name} ({'start' if st == 'new' else 'continue'})")
+            say(share + cmd)
+    return len(runnable)
+
+
 def visible_gpus() -> list:
     """The GPUs this host shows a train call: CUDA_VISIBLE_DEVICES where it is set, else those
     `nvidia-smi -L` lists (none where it is missing)."""
@@ -578,7 +703,8 @@ def check_slot_sizes(figs: dict, slots: list, args) -> None:
     never padded): say so before anything trains. Finished groups are only skipped."""
     from dscpp_jax.seed_group import parse_seeds
     env_map = args.env_map
-    for e in dict.fromkeys(e for es in figs.values() for e in es):
+    for e in dict.fromkeys(e for es in figs.values() for e in es
+                           if args.beyond_paper or not e.beyond):
         if group_state(group_dir(e, args), schedule(e, args)) == "finished":
             continue
         n = len(parse_seeds(e.seeds))
@@ -596,7 +722,8 @@ def train_all(args, figs: dict) -> dict:
     the --gpus, round robin); {group name: status}."""
     import queue
     from concurrent.futures import ThreadPoolExecutor
-    exps = list(dict.fromkeys(e for es in figs.values() for e in es))
+    exps = list(dict.fromkeys(e for es in figs.values() for e in es
+                              if args.beyond_paper or not e.beyond))
     exps.sort(key=lambda e: e.tag == "long")   # the 12,000-episode TD3 run last
     names = {}
     for e in exps:   # groups of one directory (Figure 4's, shared with A1) train once
@@ -698,9 +825,12 @@ class Data:
         for exp in dict.fromkeys(e for es in figs.values() for e in es):
             gdir = group_dir(exp, args)
             want = {f"s{s}" for s in parse_seeds(exp.seeds)}
-            self.info[exp] = dict(dir=gdir, name=shown_name(exp, gdir),
-                                  seeds=[d for d in seed_dirs(gdir) if os.path.basename(d) in want],
-                                  finished=group_state(gdir, schedule(exp, args)) == "finished")
+            seeds = [d for d in seed_dirs(gdir) if os.path.basename(d) in want]
+            if exp.beyond and seeds and _mismatch_or_error(gdir, exp, args):
+                seeds = []   # not made with the settings beyond the paper: not drawn as such
+            self.info[exp] = dict(dir=gdir, name=shown_name(exp, gdir), seeds=seeds,
+                                  finished=bool(seeds or not exp.beyond) and group_state(
+                                      gdir, schedule(exp, args)) == "finished")
 
     def dirs(self, exp):
         return self.info[exp]["seeds"] if exp in self.info else []
@@ -770,10 +900,19 @@ def _maze_title(maze: str, env_map: dict) -> str:
     return title if run == maze else f"{title} (as {run})"
 
 
+BEYOND_TITLE = "{}: DSC++ beyond the paper"
+
+
 def fig6(data: Data, out: str) -> Optional[str]:
-    exps = [e for e in data.figs["6"] if e.tag != "long"]
+    """Figure 6: one panel per maze at the paper's rule, then one per maze where groups of DSC++
+    with the preset's settings beyond the paper exist (titled so)."""
+    exps = [e for e in data.figs["6"] if e.tag != "long" and not e.beyond]
     mazes = list(dict.fromkeys(e.env for e in exps))
     panels = [(_maze_title(m, data.args.env_map), [e for e in exps if e.env == m]) for m in mazes]
+    beyond = [e for e in data.figs["6"] if e.beyond and data.dirs(e)]   # drawn where they exist
+    panels += [(BEYOND_TITLE.format(_maze_title(m, data.args.env_map)),
+                [e for e in beyond if e.env == m])
+               for m in dict.fromkeys(e.env for e in beyond)]
     hline = None
     long = [e for e in data.figs["6"] if e.tag == "long"]
     v = final_success(data.dirs(long[0])) if long else None
@@ -797,7 +936,8 @@ def fig5(data: Data, out: str) -> Optional[str]:
 
 def _a2_arms(exps: list) -> dict:
     """{Exp: (critic column value, legend label)} for appendix Figure 2's two arms."""
-    return {e: (("per_option", f"{NAMES[e.algo]}, one critic per option") if e.tag == "optcritic"
+    return {e: (("per_option", f"{NAMES[e.algo]}, one critic per option")
+                if e.tag.endswith("optcritic")
                 else ("shared", f"{NAMES[e.algo]}, one shared critic")) for e in exps}
 
 
@@ -1083,7 +1223,7 @@ def _status(ok: bool, complete) -> str:
 
 def claims(data: Data, args, figures: dict) -> list:
     """[(figure, claim, measured, status)] for every claim of the paper."""
-    fig6_exps = [e for e in data.figs.get("6", []) if e.tag != "long"]
+    fig6_exps = [e for e in data.figs.get("6", []) if e.tag != "long" and not e.beyond]
 
     def final(exp, col="eval/success_rate", reduce="last"):
         if reduce == "last" and col.startswith("eval/"):
@@ -1147,6 +1287,20 @@ def claims(data: Data, args, figures: dict) -> list:
             ok = all((v == 0).all() for m, v in got.items() if m != "u_maze")
         complete = set(got) >= set(MAZES) and all(data.finished(e) for e in exps.values())
         out.append(("6", claim, measured, _status(ok, complete)))
+    # DSC++ with the preset's settings beyond the paper: shown beside the paper's panels, not
+    # one of its claims
+    beyond = [e for e in data.figs.get("6", []) if e.beyond]
+    for maze in dict.fromkeys(e.env for e in beyond):
+        exps = {e.algo: e for e in beyond if e.env == maze}
+        got = {a: final(e) for a, e in exps.items()}
+        got = {a: v for a, v in got.items() if v is not None}
+        claim = (f"{maze}, beyond the paper (not a claim of the paper): DSC++ with the preset's "
+                 f"settings beyond the paper ({beyond_words(maze, args)})")
+        measured = ("; ".join(f"{NAMES[a]} {_fmt(v)}" for a, v in got.items())
+                    + f" ({where(exps[next(iter(got))])}, success at the end)") if got else "-"
+        done = bool(got) and all(data.finished(e) for e in exps.values())
+        out.append(("6", claim, measured, "beyond the paper" if done else
+                    "not run" if not got else "incomplete (runs missing or not finished)"))
     long = [e for e in data.figs.get("6", []) if e.tag == "long"]
     claim = "TD3+HER after 12,000 episodes on U-maze: success > 0 (dashed line)"
     v = final(long[0]) if long else None
@@ -1210,7 +1364,7 @@ def claims(data: Data, args, figures: dict) -> list:
         out.append(("A1", claim, measured, _status(ok, len(areas) == 2 and all(
             data.finished(e) for e in ea))))
     # --- Appendix Figure 2 -----------------------------------------------------------------
-    arms = {("per_option" if e.tag == "optcritic" else "shared"): e
+    arms = {("per_option" if e.tag.endswith("optcritic") else "shared"): e
             for e in data.figs.get("A2", [])}
     got = {k: final(e) for k, e in arms.items()}
     got = {k: v for k, v in got.items() if v is not None}
@@ -1272,7 +1426,8 @@ def failure_lines(data: Data) -> list:
 
 # what each figure of the paper shows, for the README's figure list
 FIG_CAPTIONS = {
-    "6": "success rate from the task start against episodes, every learner on each maze",
+    "6": "success rate from the task start against episodes, every learner on each maze at "
+         "the paper's rule, then DSC++ with the preset's settings beyond the paper",
     "5": "chain probability (eq. 3) on U-maze",
     "4": "Ant-Reacher: episodes from the four corners with robust and DP subgoals, and their "
          "average reward",
@@ -1444,6 +1599,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--report-only", action="store_true",
                    help="train nothing: figures, CSVs and README from the runs that exist")
     p.add_argument("--dry-run", action="store_true", help="print the train commands only")
+    p.add_argument("--beyond-paper", action="store_true",
+                   help="also train Figure 6's DSC++ groups with the preset's settings beyond "
+                        "the paper (the chain's frontier, the medium maze's TD3); without it "
+                        "they are drawn where they exist")
+    p.add_argument("--print-commands", action="store_true",
+                   help="print one `python -m dscpp_jax.cli train` command per group of the "
+                        "figures that has not reached its schedule (to start or continue it), "
+                        "to run side by side on one GPU; trains nothing, draws nothing")
     p.add_argument("--deterministic", action=argparse.BooleanOptionalAction, default=None,
                    help="deterministic GPU kernels in train and in the evaluations here (default: "
                         "as train: on, except on MuJoCo Warp physics)")
@@ -1541,6 +1704,11 @@ def main(argv: Optional[list] = None) -> int:
     except ValueError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    if args.runs_root and not os.path.isabs(args.runs_root) and args.print_commands:
+        args.runs_root = os.path.join(ROOT, args.runs_root)
+    if args.print_commands:
+        print_commands(args, figs)
+        return 0
     if args.gpus is None and not args.report_only:
         # several GPUs: one train call per GPU. A group over all of them would need its seeds to
         # be a multiple of the GPUs (5 seeds over 2 GPUs stop with that error)

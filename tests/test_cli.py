@@ -383,11 +383,12 @@ def test_train_names_the_medium_mazes_model_free_td3():
     model-based learners, the other mazes, or a user who set the TD3 back."""
     from dscpp_jax.cli import medium_td3_note, notes_beyond_paper
     from dscpp_jax.config import preset
-    for algo in ("mf_dscpp", "dsc", "td3_her"):
+    for algo in ("mf_dscpp", "td3_her"):
         note = medium_td3_note(preset("fast", "medium", algo))
         assert "her_strategy=future, her_relabel_prob=0.8, td3_action_l2=2" in note, algo
         assert "--set her_strategy=final --set her_relabel_prob=0.5 --set td3_action_l2=1" in note
     assert medium_td3_note(preset("fast", "medium", "mb_dscpp")) == ""
+    assert notes_beyond_paper(preset("fast", "medium", "dsc")) == []    # the paper's baseline
     assert medium_td3_note(preset("fast", "u_maze", "mf_dscpp")) == ""
     assert medium_td3_note(preset("fast", "medium", "mf_dscpp", her_strategy="final")) == ""
     assert len(notes_beyond_paper(preset("fast", "medium", "mf_dscpp"))) == 2

@@ -25,8 +25,45 @@ def _golden_config(golden: dict, key: str) -> dict:
             "env": env, "algo": algo, "preset": name}
 
 
+# Preset entries changed on purpose since the golden file was written: the paper's baselines
+# (dsc, dual) lost what they had beyond the paper, the chain's frontier, the medium maze's
+# model-free TD3 and the action penalty. (preset, env, algo) -> the fields' new values with
+# diverse starts; with diverse_starts=false the frontier was off already, and only the other
+# fields change.
+L2_OFF = dict(td3_action_l2=0.0)
+FRONTIER_OFF = dict(frontier_start_prob=0.0, frontier_parent=False, frontier_radius=5.0,
+                    frontier_inner_radius=0.0)
+MEDIUM_OFF = dict(L2_OFF, her_strategy="final", her_relabel_prob=0.5)
+INTENDED = {
+    ("fast", "u_maze", "dsc"): L2_OFF,
+    ("fast", "u_maze", "dual"): L2_OFF,
+    ("fast", "ant_reacher", "dsc"): L2_OFF,
+    ("fast", "ant_reacher", "dual"): L2_OFF,
+    ("fast", "four_rooms", "dsc"): dict(L2_OFF, **FRONTIER_OFF),
+    ("fast", "four_rooms", "dual"): L2_OFF,
+    ("fast", "large", "dsc"): dict(L2_OFF, **FRONTIER_OFF),
+    ("fast", "large", "dual"): dict(L2_OFF, **FRONTIER_OFF),
+    ("fast", "medium", "dsc"): dict(MEDIUM_OFF, **FRONTIER_OFF, max_options=24),
+    ("fast", "medium", "dual"): dict(MEDIUM_OFF, **FRONTIER_OFF, max_options=24),
+}
+FRONTIER_ONLY = set(FRONTIER_OFF) | {"max_options"}
+
+
+def _intended(key: str) -> dict:
+    """The fields of golden entry `key` changed on purpose (INTENDED)."""
+    name, env, algo = key.split("/")[:3]
+    new = INTENDED.get((name, env, algo), {})
+    if key.endswith("/diverse_starts=false"):
+        new = {k: v for k, v in new.items() if k not in FRONTIER_ONLY}
+    return new
+
+
 def test_every_preset_gives_the_golden_config():
     golden = json.loads(GOLDEN.read_text())
+    for key in golden["presets"]:              # each intended change is a change
+        old = _golden_config(golden, key)
+        assert all(old[k] != v for k, v in _intended(key).items()), key
+    assert all("/".join(e) in golden["presets"] for e in INTENDED)
     fields = set(golden["defaults"])          # fields added since take their defaults here
     assert golden["defaults"] == _only(Config().to_dict(), fields)          # no default changed
     keys = set(golden["presets"])
@@ -37,7 +74,7 @@ def test_every_preset_gives_the_golden_config():
                 base = f"{name}/{env}/{algo}"
                 for extra, key in (({}, base), ({"diverse_starts": True}, base),
                                    ({"diverse_starts": False}, base + "/diverse_starts=false")):
-                    want = {**_golden_config(golden, key), **extra}
+                    want = {**_golden_config(golden, key), **_intended(key), **extra}
                     for sub in (None,) + SUBGOALS:
                         kw = dict(extra) if sub is None else {**extra, "subgoal": sub}
                         got = preset(name, env, algo, **kw).to_dict()
@@ -92,7 +129,7 @@ def test_every_preset_entry_loads_and_validates():
 
 def test_presets_merge_from_the_least_to_the_most_specific_entry():
     keys = [k for k, _ in C.matching_entries(PRESET_TABLE["fast"], "medium", "mf_dscpp")]
-    assert keys == [("ant", "*"), ("ant", "model_free"), ("medium", "model_free")]
+    assert keys == [("ant", "*"), ("ant", "model_free"), ("medium", "mf_dscpp")]
     keys = [k for k, _ in C.matching_entries(FRONTIER_TABLE["fast"], "medium", "mb_dscpp")]
     assert keys == [("*", "*"), ("medium", "*"), ("medium", "mb_dscpp")]
     assert C.matching_entries(PRESET_TABLE["paper"], "point_medium", "dsc") == [
@@ -123,6 +160,30 @@ def test_known_preset_values():
     off = preset("fast", "medium", "mf_dscpp", diverse_starts=False)
     assert not off.frontier_on and off.max_options == 24
     assert not preset("paper", "medium", "mb_dscpp").frontier_on
+
+
+def test_the_paper_baselines_get_nothing_beyond_the_paper():
+    for name in PRESETS:
+        for env in ENV_NAMES:
+            for algo in C.PAPER_BASELINES:
+                cfg = preset(name, env, algo)
+                assert not cfg.frontier_on and cfg.td3_action_l2 == 0.0, (name, env, algo)
+                assert (cfg.her_strategy, cfg.her_relabel_prob) == ("final", 0.5)
+                assert C.paper_rule_overrides(name, env, algo) == {}
+    assert all(not set(C.PAPER_BASELINES) & set(a) for a in C.FRONTIER_CHAINS.values())
+    # DSC++ keeps its extras; paper_rule_overrides turns them off
+    mb = C.paper_rule_overrides("fast", "medium", "mb_dscpp")
+    assert mb == dict(max_options=24, frontier_start_prob=0.0, frontier_parent=False,
+                      td3_updates_per_step=0.25)
+    mf = preset("fast", "medium", "mf_dscpp", **C.paper_rule_overrides("fast", "medium",
+                                                                        "mf_dscpp"))
+    assert not mf.frontier_on and (mf.her_strategy, mf.her_relabel_prob, mf.td3_action_l2,
+                                   mf.max_options) == ("final", 0.5, 1.0, 24)
+    assert C.paper_rule_overrides("fast", "four_rooms", "mf_dscpp") == dict(
+        frontier_start_prob=0.0, frontier_parent=False)
+    assert C.paper_rule_overrides("fast", "u_maze", "mb_dscpp") == {}
+    assert C.paper_rule_overrides("paper", "medium", "mf_dscpp") == {}
+    assert C.paper_rule_overrides("fast", "point_medium", "mf_dscpp") == {}
 
 
 def test_env_names_are_those_envs_make_builds():

@@ -60,8 +60,7 @@ ALL = ini.InitiationConfig(pessimistic_examples="all")
                          ids=lambda v: v if isinstance(v, str) else v.pessimistic_examples)
 def test_dual_classifiers_match_sklearn_pipeline(case, cfg):
     if case == "overlapping":  # negatives among the positives: some are called positive
-        pos, neg = dsc_like(4, 6, 0)
-        neg = np.concatenate([pos[::16] + 0.3, dsc_like(5, 1, 12)[1]])
+        pos, neg = overlapping()
     else:
         pos, neg = dsc_like(sum(CASES[case]), *CASES[case])
     clf = ini.fit_initiation(*padded(pos, neg), cfg)
@@ -90,18 +89,50 @@ def test_dual_classifiers_match_sklearn_pipeline(case, cfg):
     assert pes.sum() < opt.sum() or len(neg) > 0
 
 
-@pytest.mark.parametrize("case", ["balanced", "positives_only"])
-def test_single_variant_is_baseline_dsc(case):
-    pos, neg = dsc_like(sum(CASES[case]), *CASES[case])
+def overlapping():
+    """Negatives among the positives: the SVC calls some of them positive."""
+    pos, _ = dsc_like(4, 6, 0)
+    return pos, np.concatenate([pos[::16] + 0.3, dsc_like(5, 1, 12)[1]])
+
+
+@pytest.mark.parametrize("case", ["few_negatives", "balanced", "positives_only", "overlapping"])
+def test_single_variant_is_use_pessimistic_clf_only(case):
+    """The authors' `use_pessimistic_clf_only`: one one-class SVM (nu 0.1) fit on the points,
+    positives and negatives together, that the two-class SVC calls positive (on the positives
+    when there are no negatives); it is both the initiation set and the child's target."""
+    pos, neg = overlapping() if case == "overlapping" else dsc_like(sum(CASES[case]), *CASES[case])
     clf = ini.fit_initiation(*padded(pos, neg), SINGLE)
     g = grid(pos, neg)
-    f_sk = sk_svc(pos, neg).decision_function(g) if len(neg) else sk_occ(pos, 0.1).decision_function(g)
+    if len(neg):
+        X = np.concatenate([pos, neg])
+        called = X[sk_svc(pos, neg).predict(X) == 1]
+        if case == "overlapping":
+            assert len(called) > np.sum(sk_svc(pos, neg).predict(pos) == 1)  # negatives enter
+        occ = sk_occ(called, 0.1)
+    else:
+        occ = sk_occ(pos, 0.1)
     inside = np.asarray(ini.initiation_contains(clf, g))
-    sure_ok, frac = agree_where_sure(inside, f_sk, two_class=len(neg) > 0)
+    sure_ok, frac = agree_where_sure(inside, occ.decision_function(g), two_class=False)
     assert sure_ok and frac >= 0.999
+    assert bool(clf.pessimistic.one_class) and bool(clf.optimistic.one_class)
     # one classifier: the target region (pessimistic) is the initiation set itself
     np.testing.assert_array_equal(np.asarray(ini.pessimistic_contains(clf, g)), inside)
     np.testing.assert_array_equal(np.asarray(ini.optimistic_contains(clf, g)), inside)
+    jax.tree.map(np.testing.assert_array_equal, clf.optimistic, clf.pessimistic)
+
+
+def test_single_variant_keeps_its_model_when_the_svc_calls_nothing_positive():
+    pos, neg = dsc_like(3, 5, 3)
+    g = grid(pos, neg, 40)
+    prev = ini.fit_initiation(*padded(pos, neg), SINGLE)
+    lone, crowd = np.zeros((1, 2), np.float32), np.zeros((9, 2), np.float32)
+    X = np.concatenate([lone, crowd])
+    assert not np.any(sk_svc(lone, crowd).predict(X) == 1)
+    out = ini.fit_initiation(*padded(lone, crowd), SINGLE, prev=prev)
+    jax.tree.map(np.testing.assert_array_equal, out, prev)
+    fresh = ini.fit_initiation(*padded(lone, crowd), SINGLE)
+    assert not bool(fresh.optimistic_fitted) and not bool(fresh.pessimistic_fitted)
+    assert not np.asarray(ini.initiation_contains(fresh, g)).any()
 
 
 def test_unfitted_contains_nothing_and_previous_models_are_kept():

@@ -48,6 +48,8 @@ def test_config_rejects_bad_values():
         O.ChainConfig(variant="triple")
     with pytest.raises(ValueError, match="gestation"):
         O.ChainConfig(gestation=0)
+    with pytest.raises(ValueError, match="initiation_period"):
+        O.ChainConfig(initiation_period=-1)
     with pytest.raises(ValueError, match="goal_xy"):
         O.chain_init(CFG, np.zeros(3))
 
@@ -378,6 +380,30 @@ def test_growth_uses_the_given_start(grown_chain):
     grown = grow(ch, far)
     assert int(grown.num_options) == 5 and int(grown.status[4]) == O.GESTATION
     assert int(grown.parent[4]) == 3
+
+
+def test_initiation_period_delays_the_child():
+    """Baseline DSC's rule (DSC 2020 `OptionClass.get_training_phase`; the model-free baseline's
+    `should_create_new_option` waits for "initiation_done"): the child of the newest mature
+    option is created once that option has gestation + initiation_period successes, not at
+    maturity; 0 creates it at maturity."""
+    period, g = 2, CFG.gestation
+    cfg = CFG.replace(initiation_period=period)
+    grow_p = jax.jit(O.grow_chain)
+    seen = []
+    for c in (cfg, CFG):
+        ch = _events(O.chain_init(c, GOAL_XY), 1, GOAL_XY, g, n_fail=2, seed=3)
+        ch = grow_p(refit(ch), START_XY)
+        steps = [(int(ch.status[1]), int(ch.num_options))]
+        for k in range(period):
+            ch = _events(ch, 1, GOAL_XY, 1, seed=4 + k)
+            ch = grow_p(refit(ch), START_XY)
+            steps.append((int(ch.status[1]), int(ch.num_options)))
+        seen.append(steps)
+    # with the period: mature at g successes, the child at g + period
+    assert seen[0] == [(O.MATURE, 2), (O.MATURE, 2), (O.MATURE, 3)]
+    # without: the child at maturity
+    assert seen[1] == [(O.MATURE, 3)] * (period + 1)
 
 
 def test_capacity_is_reported():

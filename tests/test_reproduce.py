@@ -586,47 +586,110 @@ def test_protocol_line_names_what_the_preset_adds_beyond_the_paper():
     import types
     args = reproduce.build_parser().parse_args(["--runs-root", "r", "--out", "o"])
     args.env_map = {}
-    data = types.SimpleNamespace(info=[reproduce.Exp("medium", "mb_dscpp", 2001, "0-4"),
-                                       reproduce.Exp("u_maze", "mf_dscpp", 2001, "0-4")])
+    plan = reproduce.plan(_ns(args, fig="6", algos="dsc,mb_dscpp,mf_dscpp,td3_her"))
+    data = types.SimpleNamespace(info=plan["6"])
     note = reproduce._frontier_note(data, args)
-    assert "the chain's frontier for the preset's skill chains on medium (" in note
-    assert ("on the medium maze: every skill chain 32 option rows, MB-DSC++ 1 TD3 step per "
-            "transition and every model-free learner HER's `future` strategy with 0.8") in note
-    data.info = data.info[1:]          # U-maze only: nothing beyond the paper to name
-    assert reproduce._frontier_note(data, args) == ""
-    # four rooms: the chains of MB-DSC++, MF-DSC++ and DSC use the frontier, dual's does not, so
-    # the line names the call's learners that use it, in the preset's order, not the maze's chains
-    data.info = [reproduce.Exp("four_rooms", a, 2001, "0-4")
-                 for a in ("mf_dscpp", "dual", "td3_her", "mb_dscpp")]
-    note = reproduce._frontier_note(data, args)
-    assert "the chain's frontier for MB-DSC++ and MF-DSC++ on four_rooms (" in note, note
-    assert "skill chains on" not in note and "dual" not in note and "medium" not in note
-    data.info.append(reproduce.Exp("four_rooms", "dsc", 2001, "0-4"))
-    assert ("the chain's frontier for MB-DSC++, MF-DSC++ and DSC on four_rooms ("
-            in reproduce._frontier_note(data, args))
-    data.info.append(reproduce.Exp("medium", "dsc", 2001, "0-4"))
-    assert ("the chain's frontier for the preset's skill chains on medium and for MB-DSC++, "
-            "MF-DSC++ and DSC on four_rooms (") in reproduce._frontier_note(data, args)
-    data.info = [reproduce.Exp("four_rooms", a, 2001, "0-4") for a in ("dual", "td3_her")]
-    assert "frontier" not in reproduce._frontier_note(data, args)
-    # the flat learners on the medium maze: no frontier, but the model-free TD3 is named
-    data.info = [reproduce.Exp("medium", "td3_her", 2001, "0-4")]
-    note = reproduce._frontier_note(data, args)
-    assert "frontier" not in note and "action penalty of 2 (MF-DSC++, DSC, dual and TD3+HER" in note
+    assert ("medium-mb_dscpp: `max_options=24 frontier_start_prob=0.0 frontier_parent=false "
+            "td3_updates_per_step=0.25`") in note
+    assert "four_rooms-mf_dscpp: `frontier_start_prob=0.0 frontier_parent=false`" in note
+    assert "medium-dsc" not in note and "u_maze-" not in note     # nothing to turn off
+    assert ("medium: the chain's frontier, more option rows, MB-DSC++ more TD3 steps per "
+            "transition, MF-DSC++ the medium maze's TD3") in note
+    assert "MF-DSC++ and TD3+HER keep the preset's action penalty" in note
+    data.info = [reproduce.Exp("u_maze", a, 2001, "0-4") for a in ("dsc", "dual", "mb_dscpp")]
+    assert reproduce._frontier_note(data, args) == ""      # U-maze: nothing beyond the paper
+
+
+def _ns(args, **kw):
+    import argparse
+    return argparse.Namespace(**{**vars(args), **kw})
+
+
+def test_figures_compare_at_the_papers_rule_and_show_dscpp_beyond_it_beside():
+    """Figures 5, 6, A2 and A3 use groups at the paper's rule: the baselines' own groups (the
+    preset gives them nothing beyond the paper) and, where the preset gives DSC++ (or TD3+HER on
+    the medium maze) more, `-paperrule` groups with it off; Figure 6 adds DSC++'s preset groups
+    as panels beyond the paper."""
+    args = reproduce.build_parser().parse_args(["--runs-root", "r", "--out", "o"])
+    args.env_map = {}
+    plan = reproduce.plan(_ns(args, fig="5,6,A2,A3"))
+    names = {f: [e.name({}) for e in es if not e.beyond] for f, es in plan.items()}
+    assert names["5"] == names["A3"] == [f"u_maze-{a}-g0-4" for a in reproduce.FIG5_ALGOS]
+    assert names["A2"] == ["u_maze-mf_dscpp-g0-4", "u_maze-mf_dscpp-g0-4-optcritic"]
+    six = set(names["6"])
+    assert {"medium-dsc-g0-4", "four_rooms-dsc-g0-4", "medium-mb_dscpp-g0-4-paperrule",
+            "medium-mf_dscpp-g0-4-paperrule", "four_rooms-mb_dscpp-g0-4-paperrule",
+            "four_rooms-mf_dscpp-g0-4-paperrule", "medium-td3_her-g0-4-paperrule",
+            "four_rooms-td3_her-g0-4", "u_maze-mf_dscpp-g0-4"} <= six
+    beyond = [e.name({}) for e in plan["6"] if e.beyond]
+    assert beyond == ["medium-mb_dscpp-g0-4", "medium-mf_dscpp-g0-4", "four_rooms-mb_dscpp-g0-4",
+                      "four_rooms-mf_dscpp-g0-4"]
+    from dscpp_jax.config import preset
+    for e in plan["6"]:
+        cfg = preset("fast", e.env, e.algo, **reproduce._overrides(reproduce._sets(e, args)))
+        assert cfg.frontier_on == e.beyond, e
+        if e.env == "medium" and not e.beyond:
+            assert (cfg.her_strategy, cfg.her_relabel_prob) == ("final", 0.5), e
+    # on the point-mass twins nothing is beyond the paper: the preset's own groups
+    args.env_map = {m: "point_" + m for m in reproduce.MAZES}
+    plan = reproduce.plan(_ns(args, fig="6"))
+    assert not any(e.beyond or e.tag for e in plan["6"])
+
+
+def test_print_commands_lists_the_groups_to_train(tmp_path, capsys):
+    """One train command per group still to train, with its run directory and the memory share
+    for running them side by side; a paper's-rule group made under the preset's own name (before
+    the preset had the settings beyond the paper) serves, and finished groups are left out."""
+    from dscpp_jax.config import preset
+    from dscpp_jax.run_logging import RunLogger
+    runs = tmp_path / "runs"
+    made = dataclasses.asdict(preset("fast", "four_rooms", "mb_dscpp", td3_dtype="float32",
+                                     frontier_start_prob=0.0, frontier_parent=False))
+    g = runs / "four_rooms-mb_dscpp-g0-4"
+    g.mkdir(parents=True)
+    (g / "group.json").write_text(json.dumps({"seeds": [0, 1, 2, 3, 4], "config": made}))
+    for s in range(5):
+        log = RunLogger(str(g / f"s{s}"))
+        log.log({"iteration": 3, "env_steps": 10 ** 7, "episodes": 2001})
+        log.close()
+        (g / f"s{s}" / "eval.json").write_text(json.dumps({"iteration": 3}))
+    argv = ["--fig", "5,6,A2,A3", "--print-commands", "--runs-root", str(runs),
+            "--time-budget", "600"]
+    assert reproduce.main(argv) == 0
+    text = capsys.readouterr().out
+    cmds = [l for l in text.splitlines() if not l.startswith("#")]
+    assert text.startswith(f"# {len(cmds)} group(s) to train")
+    assert all(l.startswith("XLA_PYTHON_CLIENT_MEM_FRACTION=") and
+               " python -m dscpp_jax.cli train --env " in l and "--time-budget 600" in l
+               and "--set td3_dtype=float32" in l for l in cmds)
+    dirs = [l.split("--run-dir ")[1].split(" ")[0] for l in cmds]
+    assert not any(d.endswith("four_rooms-mb_dscpp-g0-4-paperrule") for d in dirs)  # it serves
+    assert str(runs / "u_maze-dsc-g0-4") in dirs and str(runs / "u_maze-dual-g0-4") in dirs
+    assert str(runs / "u_maze-mf_dscpp-g0-4-optcritic") in dirs
+    assert str(runs / "medium-mb_dscpp-g0-4-paperrule") in dirs
+    assert not any(d.endswith("four_rooms-mb_dscpp-g0-4") for d in dirs)
+    # the preset's group with the frontier (beyond the paper) is not trained unless asked
+    assert reproduce.main(argv + ["--beyond-paper"]) == 0
+    text = capsys.readouterr().out
+    assert "# four_rooms-mb_dscpp-g0-4: made with other settings" in text
+    assert "# medium-mb_dscpp-g0-4 (start)" in text
 
 
 def test_medium_model_free_learners_share_one_td3_configuration():
-    """On the medium maze every model-free learner gets the same TD3 (HER `future` at 0.8, the
-    action penalty of 2), every skill chain 32 rows; the model-based learners keep theirs, and
+    """On the medium maze MF-DSC++ and TD3+HER get the same TD3 (HER `future` at 0.8, the action
+    penalty of 2), DSC++'s chains 32 rows; the paper's baselines, the model-based learners and
     the other mazes keep the ant preset's."""
     from dscpp_jax.config import MEDIUM_MODEL_FREE_TD3, MODEL_BASED_ALGOS, preset
     td3 = lambda c: (c.her_strategy, c.her_relabel_prob, c.td3_action_l2, c.td3_updates_per_step,
                      c.td3_batch_size, c.td3_lr, c.td3_dtype)
-    free = [preset("fast", "medium", a) for a in ("mf_dscpp", "dsc", "dual", "td3_her")]
+    free = [preset("fast", "medium", a) for a in ("mf_dscpp", "td3_her")]
     assert len({td3(c) for c in free}) == 1
     assert td3(free[0])[:3] == ("future", 0.8, 2.0) == tuple(MEDIUM_MODEL_FREE_TD3[k] for k in (
         "her_strategy", "her_relabel_prob", "td3_action_l2"))
-    assert [c.max_options for c in free] == [32, 32, 32, 24]
+    assert [c.max_options for c in free] == [32, 24]
+    for a in ("dsc", "dual"):          # the paper's baselines: nothing beyond the paper
+        c = preset("fast", "medium", a)
+        assert td3(c)[:3] == ("final", 0.5, 0.0) and c.max_options == 24
     for a in MODEL_BASED_ALGOS:
         c = preset("fast", "medium", a)
         assert (c.her_strategy, c.td3_action_l2) == ("final", 0.0)
@@ -635,7 +698,7 @@ def test_medium_model_free_learners_share_one_td3_configuration():
         c = preset("fast", env, "mf_dscpp")
         assert c.her_strategy == "final" and c.td3_action_l2 != 2.0
     # a user's --set still wins
-    assert preset("fast", "medium", "dsc", her_strategy="final").her_strategy == "final"
+    assert preset("fast", "medium", "mf_dscpp", her_strategy="final").her_strategy == "final"
 
 
 def test_readme_lists_groups_made_with_other_settings(tmp_path):
@@ -645,9 +708,10 @@ def test_readme_lists_groups_made_with_other_settings(tmp_path):
     from dscpp_jax.config import preset
     args = reproduce.build_parser().parse_args(["--runs-root", str(tmp_path), "--out", str(tmp_path)])
     args.env_map = {}
-    old, new = (reproduce.Exp("medium", a, 2001, "0-4") for a in ("dsc", "mb_dscpp"))
+    old, new = (reproduce.Exp("medium", a, 2001, "0-4") for a in ("td3_her", "mb_dscpp"))
     info = {}
-    for exp, cfg in ((old, dict(dataclasses.asdict(preset("fast", "medium", "dsc", td3_dtype="float32")),
+    for exp, cfg in ((old, dict(dataclasses.asdict(preset("fast", "medium", "td3_her",
+                                                          td3_dtype="float32")),
                                 her_strategy="final", td3_action_l2=1.0)),
                      (new, dataclasses.asdict(preset("fast", "medium", "mb_dscpp", td3_dtype="float32")))):
         gdir = tmp_path / exp.name({})
@@ -657,7 +721,7 @@ def test_readme_lists_groups_made_with_other_settings(tmp_path):
     info[reproduce.Exp("u_maze", "dsc", 2001, "0-4")] = dict(dir=str(tmp_path / "none"), seeds=[],
                                                              name="`u_maze-dsc-g0-4`")
     lines = reproduce.mismatch_lines(types.SimpleNamespace(info=info), args)
-    assert lines == ["- `medium-dsc-g0-4`: her_strategy='final' (asked: 'future'); "
+    assert lines == ["- `medium-td3_her-g0-4`: her_strategy='final' (asked: 'future'); "
                      "td3_action_l2=1.0 (asked: 2.0)"]
 
 

@@ -51,7 +51,7 @@ def test_presets_keep_paper_constants():
     assert T.td3_config(p).action_l2 == 0.0                # off in the paper preset
     assert p.td3_sample_block == 1
     # the ant `fast` preset: the action penalty on the model-free actors only; blocked sampling
-    for algo, l2 in (("mf_dscpp", 1.0), ("td3_her", 1.0), ("dsc", 1.0), ("mb_dscpp", 0.0)):
+    for algo, l2 in (("mf_dscpp", 1.0), ("td3_her", 1.0), ("dsc", 0.0), ("mb_dscpp", 0.0)):
         f = preset("fast", "four_rooms", algo)
         assert (T.td3_config(f).action_l2, f.td3_sample_block) == (l2, 32), algo
     assert preset("fast", "point_u_maze", "mf_dscpp").td3_action_l2 == 0.0
@@ -65,12 +65,11 @@ def test_presets_keep_paper_constants():
     assert [preset("fast", e).mpc_samples for e in ("u_maze", "four_rooms", "medium", "large",
                                                       "ant_reacher")] == [2048] + [4096] * 4
     assert preset("fast", "point_u_maze").mpc_samples == 128
-    # the chain's frontier: on for the skill chains of the ant mazes with dead ends and for
-    # MB-DSC++, MF-DSC++ and DSC on four rooms (not dual, unmeasured there), off elsewhere
+    # the chain's frontier: on for DSC++'s skill chains on the ant mazes with dead ends and on
+    # four rooms, off elsewhere (the paper's baselines never have it)
     for env, algo, rows in (("medium", "mb_dscpp", 32), ("medium", "mf_dscpp", 32),
-                            ("medium", "dsc", 32), ("large", "mb_dscpp", 24),
-                            ("four_rooms", "mb_dscpp", 24), ("four_rooms", "mf_dscpp", 24),
-                            ("four_rooms", "dsc", 24)):
+                            ("large", "mb_dscpp", 24),
+                            ("four_rooms", "mb_dscpp", 24), ("four_rooms", "mf_dscpp", 24)):
         f = preset("fast", env, algo)
         assert (f.frontier_start_prob, f.frontier_parent, f.frontier_radius,
                 f.frontier_inner_radius, f.max_options) == (0.5, True, 6.0, 3.0, rows), (env, algo)
@@ -79,6 +78,7 @@ def test_presets_keep_paper_constants():
         ("medium", "mb_dscpp"), ("large", "mb_dscpp"), ("u_maze", "mb_dscpp"),
         ("medium", "mb_flat_value"), ("medium", "mf_dscpp"))] == [1.0, 0.25, 0.25, 0.25, 1.0]
     for env, algo in (("u_maze", "mb_dscpp"), ("four_rooms", "dual"), ("four_rooms", "td3_her"),
+                      ("four_rooms", "dsc"), ("medium", "dsc"), ("medium", "dual"),
                       ("point_four_rooms", "mb_dscpp"), ("medium", "td3_her"),
                       ("medium", "mb_flat"), ("point_medium", "mb_dscpp")):
         f = preset("fast", env, algo)
