@@ -24,7 +24,7 @@ import numpy as np
 from dscpp_jax import compare, diagnose, envs, group_train, plots, video
 from dscpp_jax import seed_group as SG
 from dscpp_jax.config import ALGOS, PRESETS, SUBGOALS, Config, parse_value, preset
-from dscpp_jax.envs.ant_maze import warp_available
+from dscpp_jax.envs import ant_maze
 from dscpp_jax.evaluate import evaluate
 from dscpp_jax.host_loop import (TrainingDiverged, final_evaluation, notes_beyond_paper,
                                  state_done, train, write_error)
@@ -665,7 +665,7 @@ def runs_on_warp(args) -> bool:
     physics = physics or "auto"
     if physics != "auto":
         return physics == "warp"
-    return warp_available()
+    return ant_maze.warp_available()
 
 
 def deterministic_default(args) -> bool:
