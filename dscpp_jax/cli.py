@@ -31,6 +31,7 @@ from dscpp_jax.host_loop import (TrainingDiverged, final_evaluation, notes_beyon
 from dscpp_jax.run_dir import is_group_dir, load_run, saved_config
 from dscpp_jax.run_logging import RunDirError, load_config, os_error_fix, read_config, \
     write_config, wandb_missing_error
+# use_fusion_autotuner_off and load_run stay importable from here for callers of older versions
 from dscpp_jax.runtime import (COMPILE_CACHE_ENV, DEFAULT_COMPILE_CACHE,  # noqa: F401
                                use_compile_cache, use_fusion_autotuner_off, use_xla_flags)
 from dscpp_jax.trainer import resolve_physics
