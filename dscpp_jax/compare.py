@@ -26,6 +26,9 @@ import os
 import statistics
 from typing import Optional, Sequence
 
+from dscpp_jax.diagnose import mean_se
+from dscpp_jax.plots import split_label
+from dscpp_jax.run_dir import is_group_dir, seed_dirs
 from dscpp_jax.run_logging import read_metrics
 
 SOLVED = 0.8   # as in ``diagnose``: final success at or above this counts the run as solved
@@ -136,16 +139,14 @@ def expand(entries: Sequence[str]) -> dict:
     """{label: [run_dir, ...]} from "LABEL=DIR" or plain "DIR" entries (a plain entry's label is
     its directory's name); a seed group's directory stands for its seeds. Raises ValueError
     naming every entry that is not a directory."""
-    from dscpp_jax import group_train
-    from dscpp_jax.plots import _split_label
-    missing = [e for e in entries if not os.path.isdir(_split_label(e)[1])]
+    missing = [e for e in entries if not os.path.isdir(split_label(e)[1])]
     if missing:
         raise ValueError(f"not a run or group directory: {', '.join(missing)}")
     out: dict = {}
     for e in entries:
-        label, d = _split_label(e)
+        label, d = split_label(e)
         label = label if label is not None else os.path.basename(os.path.normpath(d))
-        runs = group_train.seed_dirs(d) if group_train.is_group_dir(d) else [d]
+        runs = seed_dirs(d) if is_group_dir(d) else [d]
         out.setdefault(label, []).extend(runs)
     return out
 
@@ -153,10 +154,9 @@ def expand(entries: Sequence[str]) -> dict:
 def summarize(runs: Sequence[dict], levels: Sequence[float], mature: Sequence[int]) -> dict:
     """The label's column: the runs' numbers pooled (medians, means and standard errors over
     runs)."""
-    from dscpp_jax.diagnose import _mean_se
     n = len(runs)
     succ = _finite(r["success"] for r in runs)
-    ms = _mean_se(succ)
+    ms = mean_se(succ)
     out = {"runs": n, "finished": len(succ),
            "success_mean": ms[0] if ms else None, "success_se": ms[1] if ms else None,
            "success_per_run": [r["success"] for r in runs],

@@ -53,9 +53,11 @@ import math
 import os
 from typing import Optional, Sequence
 
+from dscpp_jax.host_loop import STALLED_LINK_EXECUTIONS, link_stalled  # noqa: F401 (re-exported)
+from dscpp_jax.run_dir import is_group_dir, seed_dirs
+
 SOLVED = 0.8              # success from the start at or above this: nothing to diagnose
 WEAK_LINK = 0.2           # an option that succeeds in fewer of its evaluation executions is weak
-STALLED_LINK_EXECUTIONS = 1000
 LATE_DROP = 0.2           # broke late: the final evaluation this far below the in-band window
 FALLS_SHARE = 0.5         # falls: at least this share of the failed evaluation episodes
 DIP = 0.5                 # a periodic evaluation below this, after one reached SOLVED, is a dip
@@ -75,14 +77,6 @@ def _start_distances(metrics: dict) -> str:
         return ""
     out = f"; failures started {fail:.1f} from its target"
     return out + (f" (successes {succ:.1f})" if math.isfinite(succ) else "")
-
-
-def link_stalled(metrics: dict) -> bool:
-    """The link in gestation has failed at least ``STALLED_LINK_EXECUTIONS`` executions without a
-    success (``options/gestation_executions``, ``options/gestation_successes`` of one iteration's
-    metrics or ``metrics.csv`` row)."""
-    return (_num(metrics, "options/gestation_executions", 0.0) >= STALLED_LINK_EXECUTIONS
-            and _num(metrics, "options/gestation_successes", 1.0) == 0)
 
 
 def _last_row(path: str) -> dict:
@@ -213,13 +207,23 @@ def diagnose_run(run_dir: str) -> dict:
             "verdict": verdict}
 
 
+def chain_verdict(cfg, run_dir: str) -> Optional[str]:
+    """The verdict of :func:`diagnose_run` for a finished run with a skill chain (None for flat
+    learners, when the run left no eval.json, or when its files cannot be read)."""
+    if not cfg.hierarchical or not os.path.isfile(os.path.join(run_dir, "eval.json")):
+        return None
+    try:
+        return diagnose_run(run_dir)["verdict"]
+    except (ValueError, OSError):
+        return None
+
+
 def diagnose(run_dirs: Sequence[str]) -> list:
     """:func:`diagnose_run` of every run; a seed group's directory stands for its seeds."""
-    from dscpp_jax import group_train
     out = []
     for d in run_dirs:
-        if os.path.isdir(d) and group_train.is_group_dir(d):
-            out += [diagnose_run(s) for s in group_train.seed_dirs(d)]
+        if os.path.isdir(d) and is_group_dir(d):
+            out += [diagnose_run(s) for s in seed_dirs(d)]
         else:
             out.append(diagnose_run(d))
     return out
@@ -268,7 +272,8 @@ def format_summary(rows: Sequence[dict]) -> str:
     return f"{len(rows)} runs: " + "; ".join(f"{n} {k}" for k, n in parts)
 
 
-def _mean_se(values: Sequence[float]) -> Optional[tuple]:
+def mean_se(values: Sequence[float]) -> Optional[tuple]:
+    """(mean, standard error, count) of the finite values; None when there are none."""
     v = [float(x) for x in values if math.isfinite(float(x))]
     if not v:
         return None
@@ -284,7 +289,7 @@ def format_means(rows: Sequence[dict]) -> str:
     left out of the second, with their number said)."""
     out = []
     for key, name in (("success", "success from the start"), ("inband", "in-band at the end")):
-        ms = _mean_se([r.get(key, math.nan) for r in rows])
+        ms = mean_se([r.get(key, math.nan) for r in rows])
         if ms is None:
             out.append(f"{name} -")
         else:

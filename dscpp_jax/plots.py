@@ -3,22 +3,38 @@ pessimistic contour (appendix Figure 1), and success rate / number of options ov
 metrics.csv for one or many runs (mean +- standard error; paper Figure 6, appendix Figure 3)."""
 from __future__ import annotations
 
+import json
 import os
 import sys
 from typing import Optional, Sequence
 
+import jax
+import jax.numpy as jnp
+import matplotlib
 import numpy as np
+from matplotlib.collections import LineCollection
+from matplotlib.patches import Rectangle
+from matplotlib.ticker import FuncFormatter, MaxNLocator
+
+from dscpp_jax import seed_group as SG
+from dscpp_jax import svm
+from dscpp_jax.checkpoint import NoCheckpointError
+from dscpp_jax.config import HOST_ONLY_DEFAULTS, Config
+from dscpp_jax.evaluate import evaluate
+from dscpp_jax.run_dir import is_group_dir, load_run, seed_dirs
+from dscpp_jax.run_logging import read_config, read_metrics
+from dscpp_jax.trainer import make_env
 
 
 def _plt():
-    import matplotlib
+    """pyplot on the Agg back end, chosen when the first plot is drawn (not when this module is
+    imported, so that importing the package leaves an interactive session's back end alone)."""
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     return plt
 
 
 def _draw_maze(ax, layout):
-    from matplotlib.patches import Rectangle
     for cx, cy, hx, hy in layout.wall_boxes:
         ax.add_patch(Rectangle((cx - hx, cy - hy), 2 * hx, 2 * hy, color="0.35", zorder=1))
     xmin, xmax, ymin, ymax = layout.bounds
@@ -39,7 +55,6 @@ def option_color(option: int, max_options: int) -> tuple:
 
 
 def _layout(cfg):
-    from dscpp_jax.trainer import make_env
     return make_env(cfg).layout
 
 
@@ -49,7 +64,6 @@ def plot_trajectory(cfg, result, path: str, title: str = "", max_episodes: int =
     Failed episodes are drawn first (up to half of `max_episodes`), and where every failed episode
     ended is marked: a red x, or a red triangle when the body ended on its back.
     """
-    from matplotlib.collections import LineCollection
     plt = _plt()
     xy = np.asarray(result.xy)            # (L+1, N, 2)
     opt = np.asarray(result.option)       # (L, N)
@@ -95,10 +109,6 @@ def plot_trajectory(cfg, result, path: str, title: str = "", max_episodes: int =
 def plot_classifiers(cfg, state, path: str, resolution: int = 80) -> str:
     """Each fitted option's optimistic region (filled) and pessimistic region (black contour),
     titled with its parent and how many of its training executions succeeded (all so far)."""
-    import jax
-    import jax.numpy as jnp
-
-    from dscpp_jax import svm
     plt = _plt()
     layout = _layout(cfg)
     chain = state.chain
@@ -148,7 +158,6 @@ def plot_classifiers(cfg, state, path: str, resolution: int = 80) -> str:
 
 
 def _curve(run_dir: str, column: str, x_column: str = "env_steps"):
-    from dscpp_jax.run_logging import read_metrics
     try:
         m = read_metrics(run_dir)
     except FileNotFoundError:   # a run that has not logged an iteration yet
@@ -167,10 +176,6 @@ def _group_runs(run_dirs: Sequence[str]) -> dict:
     """Runs whose configs differ only in the seed (and host-side schedule fields) form one group,
     named "<env> <algo>"; where several groups share env and algo, the fields that tell them
     apart are appended (e.g. "u_maze mb_dscpp td3_batch_size=1024")."""
-    import json
-
-    from dscpp_jax.config import HOST_ONLY_DEFAULTS, Config
-    from dscpp_jax.run_logging import read_config
     runs_of: dict[str, list[str]] = {}
     cfg_of: dict[str, dict] = {}
     for r in run_dirs:
@@ -203,7 +208,7 @@ def _group_runs(run_dirs: Sequence[str]) -> dict:
     return groups
 
 
-def _split_label(entry: str) -> tuple[Optional[str], str]:
+def split_label(entry: str) -> tuple[Optional[str], str]:
     """"LABEL=RUN_DIR" -> (LABEL, RUN_DIR); a plain run directory -> (None, entry). The label may
     hold "=", the path not (a directory whose own name has "=" stays a plain entry)."""
     label, sep, run = str(entry).rpartition("=")
@@ -231,7 +236,7 @@ def plot_curves(run_dirs: Sequence[str], path: str, group: bool = True) -> str:
     labelled: dict[str, list[str]] = {}
     plain = []
     for r in run_dirs:
-        label, run = _split_label(r)
+        label, run = split_label(r)
         if label is not None:
             labelled.setdefault(label, []).append(run)
         else:
@@ -240,7 +245,6 @@ def plot_curves(run_dirs: Sequence[str], path: str, group: bool = True) -> str:
     missing = [r for r in missing if not os.path.isdir(r)]
     if missing:
         raise ValueError(f"not a run directory: {', '.join(missing)}")
-    from dscpp_jax.run_logging import read_config
     for r in [r for rs in labelled.values() for r in rs] + plain:
         read_config(r)   # a RunDirError saying what is wrong with a directory that is no run
     groups = _group_runs(plain) if group else {
@@ -275,7 +279,6 @@ def plot_curves(run_dirs: Sequence[str], path: str, group: bool = True) -> str:
                     ax.fill_between(grid, mean - se, mean + se, color=colors[name], alpha=0.25)
         ax.set_xlabel(xlabels[xcol])
         if xcol == "env_steps":   # 200k, 1.5M: raw step counts run into each other
-            from matplotlib.ticker import FuncFormatter, MaxNLocator
             ax.xaxis.set_major_locator(MaxNLocator(nbins=6))
             ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: _si(v)))
         ax.set_ylabel(ylabel)
@@ -296,9 +299,8 @@ def plot_seeds(run_dirs: Sequence[str], path: str, cols: int = 5) -> str:
     (periodic evaluations, markers; the final evaluation of eval.json, a star) and in-band
     success (dashed) vs training episodes. The mean curves of `plot_curves` hide what a single
     seed does: whether its chain held once it worked, or dipped and recovered."""
-    import json
     plt = _plt()
-    runs = [_split_label(r) for r in run_dirs]
+    runs = [split_label(r) for r in run_dirs]
     n = len(runs)
     cols = max(1, min(cols, n))
     rows = (n + cols - 1) // cols
@@ -341,13 +343,11 @@ def plot_seeds(run_dirs: Sequence[str], path: str, cols: int = 5) -> str:
 def expand_groups(entries: Sequence[str]) -> list[str]:
     """Each seed-group directory among `entries` ("LABEL=DIR" too) replaced by its seeds'
     directories, in the group's seed order; run directories stay as they are."""
-    from dscpp_jax import group_train
     out = []
     for e in entries:
-        label, run = _split_label(e)
-        if os.path.isdir(run) and group_train.is_group_dir(run):
-            out += [f"{label}={d}" if label is not None else d
-                    for d in group_train.seed_dirs(run)]
+        label, run = split_label(e)
+        if os.path.isdir(run) and is_group_dir(run):
+            out += [f"{label}={d}" if label is not None else d for d in seed_dirs(run)]
         else:
             out.append(e)
     return out
@@ -365,13 +365,8 @@ def plot_runs(run_dirs: Sequence[str], out_dir: str, with_state: bool = True,
     if len(run_dirs) > 1:   # one panel per run as well
         paths.append(plot_seeds(run_dirs, os.path.join(out_dir, "seeds.png")))
     if with_state:
-        import jax
-
-        from dscpp_jax.checkpoint import NoCheckpointError
-        from dscpp_jax.cli import load_run
-        from dscpp_jax.evaluate import evaluate
         for r in run_dirs:
-            r = _split_label(r)[1]
+            r = split_label(r)[1]
             tag = "" if len(run_dirs) == 1 else os.path.basename(os.path.normpath(r)) + "_"
             try:
                 cfg, state = load_run(r)
@@ -396,5 +391,32 @@ def _save(fig, path: str, rect=None) -> None:
         os.makedirs(d, exist_ok=True)
     fig.tight_layout(rect=rect)
     fig.savefig(path, dpi=110, bbox_inches="tight")
-    import matplotlib.pyplot as plt
-    plt.close(fig)
+    _plt().close(fig)
+
+
+def plot_run(run_dir: str, cfg, state, res) -> list[str]:
+    """The plots of a run at the end of its schedule (`train --plot`), in RUN_DIR/plots: its
+    curves, the trajectories of its final evaluation `res` and its options' classifiers."""
+    out = os.path.join(run_dir, "plots")
+    it = int(state.counters.iteration)
+    return [plot_curves([run_dir], os.path.join(out, "curves.png")),
+            plot_trajectory(cfg, res, os.path.join(out, "trajectory.png"),
+                            title=f"{cfg.env} {cfg.algo}, iteration {it}, "
+                                  f"{int(state.counters.env_steps)} env steps"),
+            plot_classifiers(cfg, state, os.path.join(out, "classifiers.png"))]
+
+
+def plot_group(group_dir: str, cfgs, dirs, host, res) -> None:
+    """The plots of a seed group at the end of its schedule (`group_train.train_group`'s `plot`):
+    curves over the seeds in GROUP/plots, and each seed's curves, trajectory and classifiers in
+    its own plots/, from the group's host copy `host` and its final evaluation `res`."""
+    c = host.counters
+    n = len(dirs)
+    plot_curves(dirs, os.path.join(group_dir, "plots", "curves.png"))
+    for i, (cfg, d) in enumerate(zip(cfgs, dirs)):
+        out = os.path.join(d, "plots")
+        plot_curves([d], os.path.join(out, "curves.png"))
+        plot_trajectory(cfg, SG.index_tree(res, i), os.path.join(out, "trajectory.png"),
+                        title=f"{cfg.env} {cfg.algo} seed {cfg.seed}, iteration "
+                              f"{int(c.iteration[i])}, {int(c.env_steps[i])} env steps")
+        plot_classifiers(cfg, SG.index_tree(host, i, n), os.path.join(out, "classifiers.png"))

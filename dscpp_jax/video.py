@@ -43,7 +43,14 @@ import time
 import warnings
 from typing import Dict, Iterable, List, Optional, Sequence, Tuple
 
+import jax
+import jax.numpy as jnp
+import mujoco
 import numpy as np
+
+from dscpp_jax import trainer as T
+from dscpp_jax.evaluate import evaluate_episodes
+from dscpp_jax.plots import option_color
 
 CAMERAS = ("topdown", "follow")
 GL_BACKENDS = ("egl", "osmesa")
@@ -140,7 +147,6 @@ def select_gl_backend() -> str:
 
 
 def _renderer(model, width: int, height: int, max_geom: int = 10000):
-    import mujoco
     backend = select_gl_backend()
     model.vis.global_.offwidth = max(int(model.vis.global_.offwidth), width)
     model.vis.global_.offheight = max(int(model.vis.global_.offheight), height)
@@ -334,7 +340,6 @@ class MazeScene:
     """MuJoCo model + data of an env for drawing, and what the markers need to know."""
 
     def __init__(self, env):
-        import mujoco
         self.env = env
         self.layout = env.layout
         self.goal = np.asarray(env.goal, np.float64)
@@ -366,7 +371,6 @@ class MazeScene:
 
     def set_state(self, ep: Episode, t: int) -> None:
         """Pose the model as at frame t of `ep` (kinematics only)."""
-        import mujoco
         if self.is_mjx:
             if ep.qpos is None:
                 raise ValueError("an MJX env's episode needs qpos: evaluate with record=True")
@@ -394,7 +398,6 @@ def _soften_lights(model) -> None:
 def topdown_camera(layout, width: int, height: int, fovy_deg: float = 45.0,
                    wall_height: float = 2.0, margin: float = 1.04):
     """A free camera straight above the maze centre that sees the whole map (x right, y up)."""
-    import mujoco
     xmin, xmax, ymin, ymax = layout.bounds
     half = max((ymax - ymin) / 2.0, (xmax - xmin) / 2.0 * height / width) * margin
     cam = mujoco.MjvCamera()
@@ -409,7 +412,6 @@ def topdown_camera(layout, width: int, height: int, fovy_deg: float = 45.0,
 def follow_camera(xyz, distance: float, height: float = 0.5, azimuth: float = 90.0,
                   elevation: float = -60.0):
     """A free camera looking at `xyz` from behind (-y side) and above."""
-    import mujoco
     cam = mujoco.MjvCamera()
     cam.type = mujoco.mjtCamera.mjCAMERA_FREE
     cam.lookat[:] = (float(xyz[0]), float(xyz[1]), height)
@@ -418,7 +420,6 @@ def follow_camera(xyz, distance: float, height: float = 0.5, azimuth: float = 90
 
 
 def _add_geom(scene, gtype, size, pos, rgba, emission: float = 0.0) -> None:
-    import mujoco
     if scene.ngeom >= scene.maxgeom:
         return
     g = scene.geoms[scene.ngeom]
@@ -430,7 +431,6 @@ def _add_geom(scene, gtype, size, pos, rgba, emission: float = 0.0) -> None:
 
 
 def _add_line(scene, a, b, rgba, width: float = 3.0) -> None:
-    import mujoco
     if scene.ngeom >= scene.maxgeom:
         return
     g = scene.geoms[scene.ngeom]
@@ -446,7 +446,6 @@ def draw_markers(scene, ms: MazeScene, ep: Episode, t: int, colors: Dict[int, tu
                  wall_alpha: float = 1.0) -> None:
     """Add the goal, start, path, option halo and subgoal to a scene after `update_scene`, colour
     the agent by its option, and give the walls `wall_alpha` (below 1: see-through)."""
-    import mujoco
     disc, ball = mujoco.mjtGeom.mjGEOM_CYLINDER, mujoco.mjtGeom.mjGEOM_SPHERE
     tol = ms.goal_tolerance
     gx, gy = ms.goal
@@ -478,7 +477,6 @@ def draw_markers(scene, ms: MazeScene, ep: Episode, t: int, colors: Dict[int, tu
 
 def option_colors(max_options: int) -> Dict[int, tuple]:
     """RGBA of every option index (and -1: none) as in the trajectory plots."""
-    from dscpp_jax.plots import option_color
     return {k: option_color(k, max_options) for k in range(-1, max_options)}
 
 
@@ -493,7 +491,6 @@ def render_episodes(env, episodes: Sequence[Episode], out_dir: str, max_options:
     check_options(cameras, width, height, fps, every, None, crf)
     if not episodes:
         raise ValueError("no episodes to render")
-    import mujoco
     ms = MazeScene(env)
     renderer = _renderer(ms.model, width, height)
     if shadows is None:
@@ -532,9 +529,6 @@ def render_episodes(env, episodes: Sequence[Episode], out_dir: str, max_options:
 # ------------------------------------------------------------------------------------------------
 def rollout(state, key, num_episodes: int = 1, starts=None, max_steps: Optional[int] = None):
     """Deterministic evaluation episodes with the per-step record (EvalResult)."""
-    import jax.numpy as jnp
-
-    from dscpp_jax.evaluate import evaluate_episodes
     if starts is not None:
         starts = jnp.asarray(starts, jnp.float32).reshape(-1, 2)
         num_episodes = int(starts.shape[0])
@@ -585,7 +579,6 @@ def load_record(path: str) -> Tuple[List[Episode], dict]:
 def record_run(cfg, state, episodes: int = 1, starts=None, seed: int = 0,
                max_steps: Optional[int] = None) -> Tuple[List[Episode], dict]:
     """Roll out a run's policy (no rendering): the episodes and the facts `render_record` needs."""
-    import jax
     res = rollout(state, jax.random.PRNGKey(seed), episodes, starts, max_steps)
     meta = {"env": cfg.env, "algo": cfg.algo, "iteration": int(state.counters.iteration),
             "env_steps": int(state.counters.env_steps), "seed": seed,
@@ -599,7 +592,6 @@ def render_record(cfg, episodes: Sequence[Episode], meta: dict, out_dir: str,
                   crf: int = 23) -> Dict[str, str]:
     """Draw recorded episodes of the run configured by `cfg`; write the videos and
     `eval_video.json` under `out_dir`. Returns {camera: path, "summary": path}."""
-    from dscpp_jax import trainer as T
     check_options(cameras, width, height, fps, every, None, crf)
     select_gl_backend()
     _ffmpeg()

@@ -236,21 +236,21 @@ def bench_dp(n_options, n_states, reps):
 def parse_solver(spec: str) -> svm.Solver:
     """'default', xla:STEPS:ARGMAX (or STEPS:ARGMAX) or pallas:CHUNK:WARPS:ARGMAX[:STEPS[:RESIDENT]]."""
     if spec == "default":
-        return svm._resolve_inner(None)
+        return svm.resolve_inner(None)
     parts = spec.split(":")
     if parts[0] == "pallas" and 4 <= len(parts) <= 6:
         sv = svm.Solver(backend="pallas", chunk=int(parts[1]), warps=int(parts[2]), variadic=parts[3] == "v",
-                        steps=svm._resolve_inner(None).steps)
+                        steps=svm.resolve_inner(None).steps)
         if len(parts) > 4:
             sv = sv._replace(steps=int(parts[4]))
         if len(parts) > 5:
             sv = sv._replace(resident=int(parts[5]))
-        return svm._resolve_inner(sv)
+        return svm.resolve_inner(sv)
     if parts[0] == "xla":
         parts = parts[1:]
     if len(parts) != 2:
         raise ValueError(f"bad --solver spec {spec!r}")
-    return svm._resolve_inner(svm.Solver(steps=int(parts[0]), variadic=parts[1] == "v", backend="xla"))
+    return svm.resolve_inner(svm.Solver(steps=int(parts[0]), variadic=parts[1] == "v", backend="xla"))
 
 
 def solver_name(sv: svm.Solver) -> str:
@@ -293,7 +293,7 @@ def main(argv=None):
         "sklearn_threads": "main thread pinned to one core (libsvm is single-threaded)",
         "slots_per_option": POS_SLOTS + NEG_SLOTS,
         "batch_mode": ini.BATCH_MODE.get(jax.default_backend(), ini.BATCH_MODE["default"]),
-        "default_solver": svm._resolve_inner(None)._asdict(),
+        "default_solver": svm.resolve_inner(None)._asdict(),
         "time": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
     }
     try:
@@ -306,10 +306,10 @@ def main(argv=None):
     solvers = [parse_solver(spec) for spec in args.solver]
     solvers = list(dict.fromkeys(solvers))
     cfg = ini.InitiationConfig()
-    pipes = {sv: jax.jit(lambda a, b, c, d, sv=sv: ini.fit_initiation_batch(a, b, c, d, cfg, _inner=sv))
+    pipes = {sv: jax.jit(lambda a, b, c, d, sv=sv: ini.fit_initiation_batch(a, b, c, d, cfg, solver=sv))
              for sv in solvers}
     svc_fn = jax.jit(jax.vmap(lambda x, l, m, b: svm.fit_svc(x, l, m, gamma=GAMMA, C=1.0, class_weight=b,
-                                                              _inner=solvers[0])))
+                                                              solver=solvers[0])))
     results = []
     out = {"meta": meta, "refit": results, "dp_table": None}
 

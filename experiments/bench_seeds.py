@@ -138,7 +138,8 @@ def main(argv=None) -> int:
                    help="JSON path (default experiments/results/bench_seeds_<device>.json)")
     args = p.parse_args(argv)
 
-    from dscpp_jax.cli import deterministic_choice, parse_overrides, use_xla_flags
+    from dscpp_jax.cli import deterministic_choice, parse_overrides
+    from dscpp_jax.runtime import use_xla_flags
     det = use_xla_flags(deterministic_choice(as_train(args)))
     import jax
 

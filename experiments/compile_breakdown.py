@@ -34,7 +34,8 @@ def main(argv=None) -> int:
     import jax
 
     from dscpp_jax import trainer as T
-    from dscpp_jax.cli import parse_overrides, use_compile_cache
+    from dscpp_jax.cli import parse_overrides
+    from dscpp_jax.runtime import use_compile_cache
     from dscpp_jax.config import preset
     use_compile_cache(a.compile_cache)
     t = {"imports_s": time.time() - T0}

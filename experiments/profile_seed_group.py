@@ -161,6 +161,7 @@ def profile(cfg, n: int, reps: int, variants=(), parts=DEFAULT_PARTS, trace: boo
     import jax
     import jax.numpy as jnp
 
+    from dscpp_jax import acting, learning
     from dscpp_jax import seed_group as SG
     from dscpp_jax import trainer as T
     from dscpp_jax.td3 import td3_updates
@@ -210,17 +211,17 @@ def profile(cfg, n: int, reps: int, variants=(), parts=DEFAULT_PARTS, trace: boo
     if gcfg.model_based and want("mpc"):
         def mpc(td3, dyn, k, obs):
             goals = jnp.broadcast_to(jnp.asarray(env.goal, jnp.float32), (B, 2))
-            vf = T._value_fn(gcfg, td3) if gcfg.uses_value_in_mpc else None
-            vn = T._value_net(gcfg, td3) if gcfg.uses_value_in_mpc else None
-            return T._mpc_actions(gcfg, dyn, k, obs, goals, vf, vn)
+            vf = acting.value_fn(gcfg, td3) if gcfg.uses_value_in_mpc else None
+            vn = acting.value_net(gcfg, td3) if gcfg.uses_value_in_mpc else None
+            return acting.mpc_actions(gcfg, dyn, k, obs, goals, vf, vn)
         record("mpc_decision", over_seeds(mpc, 0, 0), states.td3, states.dyn, keys,
                states.env_state.obs)
         out["mpc_s"] = out["mpc_decision_s"] * Tn
     if want("rollout"):
-        record("rollout", over_seeds(lambda s, k: T._rollout(s, k, A), (axes, 0), (axes, 0)),
+        record("rollout", over_seeds(lambda s, k: T.rollout(s, k, A), (axes, 0), (axes, 0)),
                states, keys)
     if want("learn"):
-        record("learn", over_seeds(lambda s, k: T._learn(s, k, A), (axes, 0), (axes, 0)),
+        record("learn", over_seeds(lambda s, k: T.learn(s, k, A), (axes, 0), (axes, 0)),
                states, keys)
     tcfg, sample = T.td3_config(gcfg), T.td3_sample_fn(gcfg, env)
 
@@ -262,7 +263,7 @@ def profile(cfg, n: int, reps: int, variants=(), parts=DEFAULT_PARTS, trace: boo
             with ctx:
                 record("td3_" + v, fn, *args)
     if gcfg.model_based and want("dynamics"):
-        record("dynamics", over_seeds(lambda d, mr, k: T._dynamics_updates(
+        record("dynamics", over_seeds(lambda d, mr, k: learning.dynamics_updates(
             gcfg, d, mr, k, gcfg.dyn_updates), 0, 0), states.dyn, states.model_replay, keys)
     if want("step"):
         fn, st, active = SG.group_step_program(states, mesh)
@@ -290,7 +291,7 @@ def main(argv=None) -> int:
     p.add_argument("--out", default=None)
     a = p.parse_args(argv)
 
-    from dscpp_jax.cli import use_fusion_autotuner_off
+    from dscpp_jax.runtime import use_fusion_autotuner_off
     use_fusion_autotuner_off()   # as `train` runs (before JAX touches a device)
     import jax
 

@@ -53,7 +53,8 @@ def main(argv=None) -> dict:
     import jax
     from dscpp_jax import preset
     from dscpp_jax import trainer as T
-    from dscpp_jax.cli import deterministic_choice, use_compile_cache, use_xla_flags
+    from dscpp_jax.cli import deterministic_choice
+    from dscpp_jax.runtime import use_compile_cache, use_xla_flags
     from dscpp_jax.config import parse_value
     phases["imports"] = time.time() - t
     deterministic = use_xla_flags(deterministic_choice(args))
@@ -127,9 +128,9 @@ def _step_phases(args, phase, T, cfg, key) -> None:
     cfg_dev = T.resolve_physics(cfg.validate()).device_view()
     with phase("init: compile or cache load (ahead)"):
         prewarm = T.prewarm_physics(cfg)
-        T._init_jit.lower(key, cfg_dev).compile()
+        T.init_jit.lower(key, cfg_dev).compile()
     with phase("train_step: trace"):
-        traced = T.train_step.trace(jax.eval_shape(T._init_jit, key, cfg_dev))
+        traced = T.train_step.trace(jax.eval_shape(T.init_jit, key, cfg_dev))
     with phase("train_step: lower"):
         lowered = traced.lower()
     if args.until == "lower":

@@ -53,26 +53,27 @@ def _time(fn, *args, reps=3):
 
 
 def learn_parts(cfg, state, key, reps: int) -> dict:
-    """Seconds of each part of `trainer._learn` alone, on `state` (see the module docstring)."""
+    """Seconds of each part of `trainer.learn` alone, on `state` (see the module docstring)."""
     import jax
     import jax.numpy as jnp
 
+    from dscpp_jax import acting, learning
     from dscpp_jax import trainer as T
     out = {}
     if cfg.model_based:
-        out["dyn_normaliser_s"] = _time(jax.jit(lambda d, r: T._dynamics_fit_normaliser(cfg, d, r)),
+        out["dyn_normaliser_s"] = _time(jax.jit(lambda d, r: learning.fit_normaliser(cfg, d, r)),
                                         state.dyn, state.model_replay, reps=reps)
-        out["dyn_updates_s"] = _time(jax.jit(lambda d, r, k: T._dynamics_updates(
+        out["dyn_updates_s"] = _time(jax.jit(lambda d, r, k: learning.dynamics_updates(
             cfg, d, r, k, cfg.dyn_updates)[0]), state.dyn, state.model_replay, key, reps=reps)
     if cfg.hierarchical:
         start = jnp.asarray(T.make_env(cfg).start, jnp.float32)
-        out["refit_s"] = _time(jax.jit(lambda c: T._refit(cfg, c)), state.chain, reps=reps)
-        out["grow_chain_s"] = _time(jax.jit(lambda c: T._grow_chain(cfg, c, start)), state.chain,
+        out["refit_s"] = _time(jax.jit(lambda c: learning.refit(cfg, c)), state.chain, reps=reps)
+        out["grow_chain_s"] = _time(jax.jit(lambda c: learning.grow_chain(cfg, c, start)), state.chain,
                                     reps=reps)
-        out["chain_metrics_s"] = _time(jax.jit(lambda c: T._chain_metrics(cfg, c, start)),
+        out["chain_metrics_s"] = _time(jax.jit(lambda c: acting.chain_metrics(cfg, c, start)),
                                        state.chain, reps=reps)
     checked = [state.td3, state.dyn] + ([state.chain.clf] if cfg.hierarchical else [])
-    out["finite_checks_s"] = _time(jax.jit(lambda ts: [T._all_finite(x) for x in ts]), checked,
+    out["finite_checks_s"] = _time(jax.jit(lambda ts: [learning.all_finite(x) for x in ts]), checked,
                                    reps=reps)
     return out
 
@@ -82,6 +83,7 @@ def profile(env_name: str, algo: str, B: int, overrides: dict, reps: int,
     import jax
     import jax.numpy as jnp
 
+    from dscpp_jax import acting, learning
     from dscpp_jax import trainer as T
     from dscpp_jax.config import preset
 
@@ -119,17 +121,17 @@ def profile(env_name: str, algo: str, B: int, overrides: dict, reps: int,
     k = jax.random.PRNGKey(1)
     out["env_s"] = _time(env_only, state.env_state, k, reps=reps)
     if cfg.model_based:
-        vf = T._value_fn(cfg, state.td3) if cfg.uses_value_in_mpc else None
-        vn = T._value_net(cfg, state.td3) if cfg.uses_value_in_mpc else None
-        mpc = jax.jit(lambda d, kk, o, g: T._mpc_actions(cfg, d, kk, o, g, vf, vn))
+        vf = acting.value_fn(cfg, state.td3) if cfg.uses_value_in_mpc else None
+        vn = acting.value_net(cfg, state.td3) if cfg.uses_value_in_mpc else None
+        mpc = jax.jit(lambda d, kk, o, g: acting.mpc_actions(cfg, d, kk, o, g, vf, vn))
         obs = state.env_state.obs
         goals = jnp.broadcast_to(jnp.asarray(env.goal, jnp.float32), (B, 2))
         out["mpc_decision_s"] = _time(mpc, state.dyn, k, obs, goals, reps=reps)
         out["mpc_s"] = out["mpc_decision_s"] * Tn
-    roll = jax.jit(T._rollout)
+    roll = jax.jit(T.rollout)
     out["rollout_warmup_s"] = _time(roll, state, k, reps=reps)
     out["rollout_policy_s"] = _time(roll, post, k, reps=reps)
-    learn = jax.jit(T._learn)
+    learn = jax.jit(T.learn)
     out["learn_s"] = _time(learn, post, k, reps=reps)
     from dscpp_jax.td3 import td3_updates
     tcfg, sample = T.td3_config(cfg), T.td3_sample_fn(cfg, env)
@@ -192,15 +194,15 @@ def main(argv=None) -> int:
     if args.trained < 0 or args.chained < 0:
         p.error("--trained and --chained must be >= 0")
     if args.xla_flags == "train":   # before JAX touches a device
-        from dscpp_jax import cli
+        from dscpp_jax import cli, runtime
         ns = argparse.Namespace(env=args.env, algo=args.algo, physics="auto", deterministic=None)
-        deterministic = cli.use_xla_flags(cli.deterministic_choice(ns))
+        deterministic = runtime.use_xla_flags(cli.deterministic_choice(ns))
     else:
         deterministic = "xla_gpu_deterministic_ops=true" in os.environ.get("XLA_FLAGS", "")
 
     import jax
 
-    from dscpp_jax.cli import use_compile_cache
+    from dscpp_jax.runtime import use_compile_cache
     from dscpp_jax.config import parse_value
     cache = use_compile_cache(args.compile_cache)
     overrides = {"inband_eval_envs": 0}   # training alone unless --set asks for in-band envs

@@ -1,15 +1,25 @@
 """The command line end to end on a tiny config: train, checkpoint, resume, Ctrl-C, eval, plot."""
 import json
 import os
+import shutil
 import signal
+import subprocess
 import sys
 
 import pytest
+from jax._src import xla_bridge
 
+from dscpp_jax import diagnose
 from dscpp_jax import checkpoint as ck
 from dscpp_jax import trainer as T
-from dscpp_jax.cli import main
-from dscpp_jax.run_logging import read_metrics, read_startup
+from dscpp_jax.cli import build_parser, deterministic_default, main
+from dscpp_jax.config import preset
+from dscpp_jax.envs import ant_maze
+from dscpp_jax.host_loop import frontier_note, medium_td3_note, notes_beyond_paper
+from dscpp_jax.plots import _group_runs, plot_curves
+from dscpp_jax.run_logging import RunLogger, _git_commit, read_metrics, read_startup, write_config
+from dscpp_jax.runtime import (DETERMINISTIC_FLAG, FUSION_AUTOTUNER_FLAG, use_compile_cache,
+                               use_deterministic_ops, use_fusion_autotuner_off, use_xla_flags)
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -55,7 +65,6 @@ def test_cli_train_resume_interrupt_eval_plot(tmp_path, monkeypatch, capsys):
     assert st[0]["command_to_first_iteration_s"] >= sum(st[0]["phases_s"].values()) - 1e-2
     # and the run's last line says why its chain ends where it does (diagnose's verdict)
     out = capsys.readouterr().out
-    from dscpp_jax import diagnose
     verdict = diagnose.diagnose_run(run)["verdict"]
     assert f"chain: {verdict} (python -m dscpp_jax.cli diagnose {run})" in out
 
@@ -126,7 +135,6 @@ def test_cli_rejects_bad_input(tmp_path, capsys):
 
 
 def test_metrics_csv_widens_for_late_columns(tmp_path):
-    from dscpp_jax.run_logging import RunLogger
     log = RunLogger(str(tmp_path), tensorboard=False)
     log.log({"iteration": 1, "env_steps": 10, "train/x": 1.0})
     log.log({"iteration": 2, "env_steps": 20, "train/x": 2.0, "eval/success_rate": 0.5})
@@ -140,9 +148,6 @@ def test_metrics_csv_widens_for_late_columns(tmp_path):
 
 
 def test_plot_groups_seeds_and_names_variants(tmp_path):
-    from dscpp_jax.config import preset
-    from dscpp_jax.plots import _group_runs
-    from dscpp_jax.run_logging import write_config
     runs = {}
     for name, kw in {"a0": dict(seed=0), "a1": dict(seed=1),
                      "b0": dict(seed=0, td3_batch_size=1024, total_env_steps=5),
@@ -177,9 +182,6 @@ def test_plot_groups_seeds_and_names_variants(tmp_path):
 
 
 def test_plot_curves_takes_labels(tmp_path):
-    from dscpp_jax.config import preset
-    from dscpp_jax.plots import plot_curves
-    from dscpp_jax.run_logging import write_config
     runs = []
     for k in range(3):
         r = tmp_path / f"r{k}"
@@ -215,10 +217,6 @@ def test_plot_curves_takes_labels(tmp_path):
 def test_config_records_the_git_commit_only_of_a_checkout_that_tracks_the_source(tmp_path):
     """config.json's `dscpp_jax_git`: HEAD (+dirty once a tracked file changes) of the checkout
     that tracks the source file, nothing for a copy outside one."""
-    import shutil
-    import subprocess
-
-    from dscpp_jax.run_logging import _git_commit
     if shutil.which("git") is None:
         pytest.skip("git is not installed")
 
@@ -242,8 +240,6 @@ def test_config_records_the_git_commit_only_of_a_checkout_that_tracks_the_source
 
 
 def test_deterministic_switch_sets_xla_flags_only_before_jax_uses_a_device(monkeypatch):
-    from jax._src import xla_bridge
-    from dscpp_jax.cli import DETERMINISTIC_FLAG, build_parser, use_deterministic_ops
     monkeypatch.setenv("XLA_FLAGS", "--xla_dump_to=/tmp/x")
     monkeypatch.setattr(xla_bridge, "backends_are_initialized", lambda: False)
     assert not use_deterministic_ops(False) and os.environ["XLA_FLAGS"] == "--xla_dump_to=/tmp/x"
@@ -262,9 +258,6 @@ def test_deterministic_switch_sets_xla_flags_only_before_jax_uses_a_device(monke
 
 
 def test_fusion_autotuner_flag_is_added_once_and_never_over_the_users_choice(monkeypatch):
-    from jax._src import xla_bridge
-    from dscpp_jax.cli import (DETERMINISTIC_FLAG, FUSION_AUTOTUNER_FLAG, use_fusion_autotuner_off,
-                               use_xla_flags)
     monkeypatch.setattr(xla_bridge, "backends_are_initialized", lambda: False)
     monkeypatch.setenv("XLA_FLAGS", "--xla_dump_to=/tmp/x")
     assert use_xla_flags(False) is False
@@ -285,8 +278,6 @@ def test_fusion_autotuner_flag_is_added_once_and_never_over_the_users_choice(mon
 
 def test_xla_accepts_the_fusion_autotuner_flag():
     """XLA aborts on a flag it does not know; this jaxlib must parse the one `train` adds."""
-    import subprocess
-    from dscpp_jax.cli import FUSION_AUTOTUNER_FLAG
     env = dict(os.environ, XLA_FLAGS=FUSION_AUTOTUNER_FLAG, JAX_PLATFORMS="cpu")
     r = subprocess.run([sys.executable, "-c", "import jax.numpy as j; print(j.ones(2).sum())"],
                        env=env, capture_output=True, text=True, timeout=120)
@@ -298,8 +289,6 @@ def test_deterministic_default_follows_the_physics(tmp_path, monkeypatch):
     not repeat either way), for every learner: the physics from --physics, --set physics=, or the
     saved config of --resume and --run ("auto" means Warp where warp-lang is installed).
     Point-mass twins stay deterministic."""
-    from dscpp_jax.envs import ant_maze
-    from dscpp_jax.cli import build_parser, deterministic_default
     p = build_parser()
 
     def default(*argv):
@@ -338,12 +327,11 @@ def test_deterministic_default_follows_the_physics(tmp_path, monkeypatch):
 
 def test_compile_cache_stores_programs_and_a_second_process_loads_them(tmp_path):
     """A fresh process with the cache compiles and stores; the next one loads from it."""
-    import subprocess
     cache = tmp_path / "cache"
     code = (
         "import sys, jax, jax.numpy as jnp\n"
         "from jax._src import monitoring\n"
-        "from dscpp_jax.cli import use_compile_cache\n"
+        "from dscpp_jax.runtime import use_compile_cache\n"
         "hits = []\n"
         "monitoring.register_event_listener(\n"
         "    lambda name, **kw: hits.append(name) if name.endswith('cache_hits') else None)\n"
@@ -359,15 +347,12 @@ def test_compile_cache_stores_programs_and_a_second_process_loads_them(tmp_path)
         assert r.returncode == 0, r.stderr[-2000:]
     assert any(cache.iterdir())                                  # the first process stored it
     assert "hits 0" in runs[0].stdout and "hits 0" not in runs[1].stdout
-    from dscpp_jax.cli import build_parser, use_compile_cache
     assert use_compile_cache("off") is None and use_compile_cache("") is None
     assert build_parser().parse_args(["train", "--compile-cache", "d"]).compile_cache == "d"
     assert build_parser().parse_args(["eval", "--run", "r"]).compile_cache is None
 
 
 def test_train_names_the_chains_frontier_where_the_preset_turns_it_on():
-    from dscpp_jax.cli import frontier_note
-    from dscpp_jax.config import preset
     note = frontier_note(preset("fast", "medium", "mb_dscpp"))
     assert "frontier_start_prob=0.5" in note and "frontier_parent=true" in note
     assert "--set frontier_start_prob=0 --set frontier_parent=false" in note
@@ -381,8 +366,6 @@ def test_train_names_the_medium_mazes_model_free_td3():
     """A model-free run on the ant medium maze says that its TD3 (HER future at 0.8, action
     penalty 2) is beyond the paper and how to get the other mazes' TD3; nothing for the
     model-based learners, the other mazes, or a user who set the TD3 back."""
-    from dscpp_jax.cli import medium_td3_note, notes_beyond_paper
-    from dscpp_jax.config import preset
     for algo in ("mf_dscpp", "td3_her"):
         note = medium_td3_note(preset("fast", "medium", algo))
         assert "her_strategy=future, her_relabel_prob=0.8, td3_action_l2=2" in note, algo

@@ -6,6 +6,7 @@ import math
 import pytest
 
 from dscpp_jax import cli
+from dscpp_jax import config as C
 from dscpp_jax import diagnose as D
 
 
@@ -158,7 +159,6 @@ def test_dips_count_periodic_evaluations_below_half_once_solved(tmp_path):
 
 
 def test_diagnose_takes_groups_and_says_what_is_missing(tmp_path, capsys):
-    from dscpp_jax import group_train
     a = _run(tmp_path, "a", {"options/start_covered": 1}, {"eval/success_rate": 1.0})
     with pytest.raises(ValueError, match="no metrics.csv"):
         D.diagnose_run(str(tmp_path))
@@ -173,10 +173,9 @@ def test_diagnose_takes_groups_and_says_what_is_missing(tmp_path, capsys):
     assert D.format_means([r, D.diagnose_run(done)]).startswith(
         "success from the start 0.50 ± 0.00 (1 of 2 runs)")
     # train's own end-of-run line gives no verdict for a run whose evaluation is missing
-    from dscpp_jax import config as C
     cfg = C.preset("fast", env="point_u_maze", algo="mb_dscpp")
-    assert cli._chain_verdict(cfg, a) is None
-    assert cli._chain_verdict(cfg, done) == "start covered, failing on the way"
+    assert D.chain_verdict(cfg, a) is None
+    assert D.chain_verdict(cfg, done) == "start covered, failing on the way"
     (tmp_path / "eval.json.bak").rename(tmp_path / "a" / "eval.json")
     flat = _run(tmp_path, "flat", {}, {"eval/success_rate": 0.0})
     with open(f"{flat}/metrics.csv", "w") as f:
@@ -186,8 +185,8 @@ def test_diagnose_takes_groups_and_says_what_is_missing(tmp_path, capsys):
     # a group directory stands for its seeds
     (tmp_path / "g").mkdir()
     monkey = pytest.MonkeyPatch()
-    monkey.setattr(group_train, "is_group_dir", lambda d: d == str(tmp_path / "g"))
-    monkey.setattr(group_train, "seed_dirs", lambda d: [a, a])
+    monkey.setattr(D, "is_group_dir", lambda d: d == str(tmp_path / "g"))
+    monkey.setattr(D, "seed_dirs", lambda d: [a, a])
     try:
         assert [r["run"] for r in D.diagnose([str(tmp_path / "g"), a])] == [a, a, a]
         assert cli.main(["diagnose", a]) == 0

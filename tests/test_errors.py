@@ -9,12 +9,23 @@ import re
 import shutil
 import subprocess
 import sys
+from types import SimpleNamespace
 
+import jax
+import jax.numpy as jnp
+import numpy as np
 import pytest
 
+import dscpp_jax
+from dscpp_jax import envs, plots
 from dscpp_jax import checkpoint as ck
+from dscpp_jax import config as C
+from dscpp_jax import run_logging as RL
+import dscpp_jax.cli as cli
 from dscpp_jax.cli import main
-from dscpp_jax.run_logging import read_metrics
+from dscpp_jax.config import parse_value, preset
+from dscpp_jax.run_dir import load_run
+from dscpp_jax.run_logging import RunLogger, load_config, read_metrics, write_config
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -96,8 +107,6 @@ def test_missing_and_foreign_run_directories_get_one_line_errors(tmp_path, capsy
     assert main(["eval", "--run", str(foreign)]) == 2
     assert 'no "config" section' in _one_error_line(capsys.readouterr().err)
     # a run directory whose config is fine but that never saved a checkpoint
-    from dscpp_jax.config import preset
-    from dscpp_jax.run_logging import write_config
     write_config(str(foreign), preset("fast", "point_u_maze", "td3_her").to_dict())
     assert main(["eval", "--run", str(foreign)]) == 2
     line = _one_error_line(capsys.readouterr().err)
@@ -112,9 +121,6 @@ def test_missing_and_foreign_run_directories_get_one_line_errors(tmp_path, capsy
 
 
 def test_config_from_another_version(tmp_path, monkeypatch, capsys):
-    from dscpp_jax import config as C
-    from dscpp_jax.config import preset
-    from dscpp_jax.run_logging import load_config, write_config
     run = str(tmp_path / "old")
     os.makedirs(run)
     cfg = preset("fast", "point_u_maze", "td3_her")
@@ -150,7 +156,6 @@ def test_config_from_another_version(tmp_path, monkeypatch, capsys):
 
 
 def test_set_names_the_field_its_type_and_an_example(capsys):
-    from dscpp_jax.config import parse_value
     assert main(["train", "--set", "gestation=abc"]) == 2
     line = _one_error_line(capsys.readouterr().err)
     assert "gestation" in line and "an integer" in line and "e.g. --set gestation=" in line
@@ -234,7 +239,6 @@ def test_damaged_newest_checkpoint_falls_back_loudly(trained, tmp_path, capsys):
 ])
 def test_full_disk_or_read_only_run_directory(trained, tmp_path, monkeypatch, capsys, where, err,
                                               expect):
-    from dscpp_jax.run_logging import RunLogger
     run = _copy(trained, tmp_path)
     before = _snapshot(run)
     calls = {"n": 0}
@@ -261,7 +265,6 @@ def test_full_disk_or_read_only_run_directory(trained, tmp_path, monkeypatch, ca
 
 
 def test_eval_into_a_read_only_run_directory(trained, tmp_path, monkeypatch, capsys):
-    import dscpp_jax.cli as cli
     run = _copy(trained, tmp_path)
 
     def read_only_open(path, mode="r", *a, **k):
@@ -276,7 +279,6 @@ def test_eval_into_a_read_only_run_directory(trained, tmp_path, monkeypatch, cap
 
 def test_checkpoint_save_keeps_older_ones_until_the_new_one_reads_back(tmp_path, monkeypatch,
                                                                        capsys):
-    import jax.numpy as jnp
     run = str(tmp_path)
     tree = {"a": jnp.arange(4.0)}
     c = ck.Checkpointer(run, keep=1)
@@ -302,7 +304,6 @@ def test_checkpoint_save_keeps_older_ones_until_the_new_one_reads_back(tmp_path,
 
 
 def test_metrics_csv_survives_a_failed_rewrite_and_a_cut_row(tmp_path, monkeypatch):
-    from dscpp_jax import run_logging as RL
     log = RL.RunLogger(str(tmp_path), tensorboard=False)
     log.log({"iteration": 1, "env_steps": 10, "train/x": 1.0})
     text = open(tmp_path / "metrics.csv").read()
@@ -323,11 +324,6 @@ def test_metrics_csv_survives_a_failed_rewrite_and_a_cut_row(tmp_path, monkeypat
 # the Python API and the env constructors
 # ------------------------------------------------------------------------------------------------
 def test_python_api_and_env_constructors_reject_bad_arguments(trained):
-    import jax
-
-    import dscpp_jax
-    from dscpp_jax import envs
-    from dscpp_jax.cli import load_run
     cfg, state = load_run(trained)
     with pytest.raises(TypeError, match="needs a dscpp_jax.Config"):
         dscpp_jax.init(cfg, jax.random.PRNGKey(0))       # arguments swapped
@@ -391,12 +387,6 @@ def test_missing_warp_probe_is_silent_other_output_is_not(tmp_path):
 
 
 def test_trajectory_legend_sits_beside_the_maze(tmp_path, monkeypatch):
-    from types import SimpleNamespace
-
-    import numpy as np
-
-    from dscpp_jax import plots
-    from dscpp_jax.config import preset
     cfg = preset("fast", "point_medium", "mb_dscpp")
     L, N = 5, 2
     res = SimpleNamespace(xy=np.zeros((L + 1, N, 2)), option=np.ones((L, N), int),

@@ -8,7 +8,11 @@ import threading
 import jax
 import pytest
 
+from dscpp_jax import envs, group_train
+from dscpp_jax import seed_group as SG
 from dscpp_jax import trainer as T
+from dscpp_jax.envs.ant_maze import warp_available
+from dscpp_jax.host_loop import train
 from tests.trainer_fixtures import tiny
 
 
@@ -38,8 +42,6 @@ def test_loops_compile_ahead_and_wait_for_the_kernel_build(tmp_path, monkeypatch
     # that the single-run and the group loop take the path they take on a GPU. The runs with it
     # use a config of their own, so their step compiles afresh: the ahead-of-time compile must be
     # the only compile of the step, as the first call is without it.
-    from dscpp_jax import group_train
-    from dscpp_jax.cli import train
     assert T.prewarm_physics(tiny("td3_her")) is None
     cfgs = [tiny("td3_her", total_env_steps=160, td3_hidden=h) for h in (24, 40)]
     (state, _), plain = _compiles(lambda: train(cfgs[0], str(tmp_path / "a"), progress=False))
@@ -50,7 +52,6 @@ def test_loops_compile_ahead_and_wait_for_the_kernel_build(tmp_path, monkeypatch
     # `init` steps the env through MuJoCo Warp, and Warp launches from two threads at once crash
     # (seen on a GPU with warm caches): a single run compiles `init` and the step ahead while the
     # thread builds, and runs `init` after it; a group starts the thread once its states exist
-    from dscpp_jax import seed_group as SG
     for mod, name in ((T, "init"), (SG, "init_group")):
         real = getattr(mod, name)
         monkeypatch.setattr(mod, name, lambda *a, _real=real, _n=name, **k: (
@@ -71,8 +72,6 @@ def test_loops_compile_ahead_and_wait_for_the_kernel_build(tmp_path, monkeypatch
 
 
 def test_build_warp_kernels_steps_the_model_outside_jax():
-    from dscpp_jax.envs.ant_maze import warp_available
-    from dscpp_jax import envs
     assert envs.make("u_maze", physics="jax").build_warp_kernels("cpu") is False
     if not warp_available():
         pytest.skip("warp-lang is not installed")

@@ -11,21 +11,33 @@ products whose sums may run in another order, so floats of a seed in a group dif
 separate run by rounding (about 1e-7 relative after an iteration); counters and every discrete
 quantity are compared exactly.
 """
+import argparse
+import importlib
 import json
 import os
 import socket
 import subprocess
 import sys
 import types
+from concurrent.futures import ThreadPoolExecutor
 
 import jax
 import numpy as np
 import pytest
+from jax.sharding import PartitionSpec as P
 
+import dscpp_jax
+from dscpp_jax import diagnose, group_train, host_loop
+from dscpp_jax import checkpoint as ck
 from dscpp_jax import seed_group as SG
 from dscpp_jax import trainer as T
-from dscpp_jax.cli import load_run, main
-from dscpp_jax.run_logging import read_metrics
+from dscpp_jax.cli import deterministic_choice, main, parse_overrides
+from dscpp_jax.config import preset
+from dscpp_jax.envs import ant_maze
+from dscpp_jax.envs.ant_maze import warp_available
+from dscpp_jax.evaluate import evaluate
+from dscpp_jax.run_dir import load_run
+from dscpp_jax.run_logging import read_metrics, read_startup
 from tests.trainer_fixtures import assert_trees_equal
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -42,8 +54,6 @@ RTOL = 1e-4
 
 def group_config():
     """The config that TRAIN gives (for the API)."""
-    from dscpp_jax.cli import parse_overrides
-    from dscpp_jax.config import preset
     return preset("fast", "point_u_maze", "td3_her", **parse_overrides(TINY))
 SKIP = ("wall_clock", "time/")
 
@@ -88,7 +98,6 @@ def cache(tmp_path_factory):
 def background(tmp_path_factory):
     """The 4-device and the two-process runs, started at once in subprocesses so that they compile
     while this process does (2 CPU cores); the tests below wait for their results."""
-    from concurrent.futures import ThreadPoolExecutor
     base = tmp_path_factory.mktemp("background")
     pool = ThreadPoolExecutor(2)
     runs = {"four": pool.submit(_run_four_devices, str(base / "four.json")),
@@ -122,7 +131,6 @@ def test_seed_lists_and_cli_errors(capsys, tmp_path):
 
 
 def test_leaf_rule_shards_group_sized_leaves_and_replicates_the_rest():
-    from jax.sharding import PartitionSpec as P
     tree = {"per_seed": np.zeros((3, 5)), "shared": np.zeros((7, 3)), "scalar": np.zeros(())}
     assert SG.group_specs(tree, 3) == {"per_seed": P("seeds"), "shared": P(), "scalar": P()}
 
@@ -145,7 +153,6 @@ def test_group_equals_separate_runs(ref, tmp_path):
         assert ev_a["seed"] == s and ev_a["iteration"] == 6
     gj = json.load(open(os.path.join(ref, "group.json")))
     assert gj["seeds"] == [0, 1] and gj["mesh"] == {"seeds": 1} and "jax" in gj["versions"]
-    from dscpp_jax.run_logging import read_startup
     st = read_startup(ref)   # the group's start, once
     assert len(st) == 1 and st[0]["seeds"] == [0, 1] and "first iteration" in st[0]["phases_s"]
     assert json.load(open(os.path.join(ref, "s1", "config.json")))["config"]["seed"] == 1
@@ -153,7 +160,6 @@ def test_group_equals_separate_runs(ref, tmp_path):
 
 
 def test_group_evaluation_with_exploration_equals_each_seed():
-    from dscpp_jax.evaluate import evaluate
     g = SG.init_group([3, 5], group_config())
     summ, res = SG.evaluate_group(g, num_episodes=2, explore=True)
     for i in (0, 1):
@@ -228,13 +234,11 @@ def test_a_diverged_seed_stops_the_group_and_is_named(ref, tmp_path, monkeypatch
     err = capsys.readouterr().err
     assert "diverged at iteration 2 (seed 1: the TD3 actor/critic parameters)" in err
     assert "whole group stopped" in err
-    from dscpp_jax import checkpoint as ck
     assert ck.latest_step(group) == 1           # the last finite group state
 
 
 def test_readme_seed_group_example_runs(ref, capsys):
     """The README's seed-group lines, on the tiny config compiled above."""
-    import dscpp_jax
     text = open(os.path.join(ROOT, "README.md")).read()
     block = text.split("# several seeds in one jitted program", 1)[1].split("```", 1)[0]
     block = block.split("\n", 1)[1]      # the lines after that comment, to the block's end
@@ -246,7 +250,6 @@ def test_readme_seed_group_example_runs(ref, capsys):
 
 def _experiment(name: str):
     """A script of experiments/ imported as a module."""
-    import importlib
     sys.path.insert(0, os.path.join(ROOT, "experiments"))
     try:
         return importlib.import_module(name)
@@ -274,9 +277,6 @@ def test_bench_seeds_smoke(ref, tmp_path):
 def test_bench_seeds_deterministic_default_is_train_s(monkeypatch):
     """The benchmark sets the switch once for all its algorithms, as `train` would: off where the
     ant physics is MuJoCo Warp, on otherwise, unless asked."""
-    import argparse
-    from dscpp_jax.envs import ant_maze
-    from dscpp_jax.cli import deterministic_choice
     bench_seeds = _experiment("bench_seeds")
     monkeypatch.setattr(ant_maze, "warp_available", lambda: True)
 
@@ -335,8 +335,6 @@ summ, _ = SG.evaluate_group(states, num_episodes=2)
 out["eval"] = [s["eval/success_rate"] for s in summ]
 json.dump(out, open(sys.argv[1], "w"))
 """
-
-
 def _run_four_devices(path):
     r = subprocess.run([sys.executable, "-c", FOUR_DEVICES, path], cwd=ROOT, timeout=900,
                        env=_env(XLA_FLAGS=" ".join(filter(None, (
@@ -415,7 +413,6 @@ def test_two_processes_equal_one(ref, background):
 def _warp_config(**kw):
     """The ant U-maze on MuJoCo Warp, tiny: both Warp tests use it, so that the group programs the
     first compiles serve the second."""
-    from dscpp_jax.config import preset
     return preset("fast", "u_maze", "td3_her", physics="warp", num_envs=2, steps_per_iter=10,
                   episode_length=20, warmup_episodes=0, td3_hidden=16, td3_batch_size=16,
                   td3_updates_per_step=0.1, replay_capacity=500, eval_episodes=1,
@@ -426,7 +423,6 @@ def test_warp_physics_group_equals_separate_runs():
     """MuJoCo Warp's Data batches itself under vmap (its contact buffers are shared by all worlds of
     the group, not split per seed): a group of two ant seeds on Warp steps and evaluates, and each
     seed matches its separate run."""
-    from dscpp_jax.envs.ant_maze import warp_available
     if not warp_available():
         pytest.skip("warp-lang is not installed")
     cfg = _warp_config()
@@ -445,11 +441,8 @@ def test_warp_group_seed_directory_evaluates(tmp_path):
     """A seed directory of a group trained on MuJoCo Warp restores from the group checkpoint (whose
     contact buffers are shared by the group, not split per seed) and evaluates, as `eval --run
     GROUP/s1` and `video --run GROUP/s1` do."""
-    from dscpp_jax.envs.ant_maze import warp_available
     if not warp_available():
         pytest.skip("warp-lang is not installed")
-    from dscpp_jax import group_train
-    from dscpp_jax.evaluate import evaluate
     cfg = _warp_config(eval_every=0)   # the group program of the test above (eval_every: host only)
     states, group, _ = group_train.train_group(cfg, [0, 1], str(tmp_path / "g"), progress=False,
                                                max_iterations=1)
@@ -461,11 +454,10 @@ def test_warp_group_seed_directory_evaluates(tmp_path):
 
 
 def test_a_stuck_chain_warning_names_its_seed_once(tmp_path, monkeypatch, capsys):
-    import dscpp_jax.cli as cli
-    monkeypatch.setattr(cli, "stuck_chain_warning", lambda m, cfg, who="": (
+    monkeypatch.setattr(host_loop, "stuck_chain_warning", lambda m, cfg, who="": (
         f"warning: {who}stuck" if cfg.seed == 1 else None))
     # each seed's line ends with diagnose's verdict on that seed's directory
-    monkeypatch.setattr(cli, "_chain_verdict", lambda cfg, d: f"verdict of {os.path.basename(d)}")
+    monkeypatch.setattr(diagnose, "chain_verdict", lambda cfg, d: f"verdict of {os.path.basename(d)}")
     assert main(TRAIN + ["--seeds", "0-1", "--run-dir", str(tmp_path / "g")]) == 0
     out, err = capsys.readouterr()
     assert err.count(": stuck") == 1 and "seed 1, iteration 1: stuck" in err
@@ -477,9 +469,8 @@ def test_a_seed_finishing_early_waits_for_the_next_evaluation(tmp_path, monkeypa
     """A seed that reaches its budget before the others is frozen; its last row waits for the
     group's next evaluation (here the final one) instead of costing an evaluation of its own, and
     holds the numbers its separate run logs when it stops."""
-    from dscpp_jax import group_train
     budget = {0: TOTAL, 1: TOTAL // 2}   # seed 1 stops after 3 of seed 0's 6 iterations
-    monkeypatch.setattr(group_train, "_done", lambda cfg, steps, episodes: steps >= budget[cfg.seed])
+    monkeypatch.setattr(host_loop, "schedule_done", lambda cfg, steps, episodes: steps >= budget[cfg.seed])
     calls = []
     real_eval = SG.evaluate_group
     monkeypatch.setattr(SG, "evaluate_group", lambda *a, **k: calls.append(1) or real_eval(*a, **k))

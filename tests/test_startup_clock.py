@@ -6,6 +6,7 @@ import time
 
 import pytest
 
+from dscpp_jax import cli
 from dscpp_jax.run_logging import STARTUP_FILE, StartupClock, process_age_s, read_startup
 
 
@@ -50,7 +51,6 @@ def test_a_call_from_python_does_not_count_the_process_start(tmp_path):
 
 
 def test_main_counts_the_process_start_only_as_the_command(monkeypatch):
-    from dscpp_jax import cli
-    monkeypatch.setattr(cli, "_FROM_COMMAND_LINE", True)
+    monkeypatch.setattr(cli, "FROM_COMMAND_LINE", True)
     assert cli.main(["train", "--env", "point_u_maze", "--seeds", "3-1"]) == 2
-    assert cli._FROM_COMMAND_LINE is False   # a call with arguments is not the command line
+    assert cli.FROM_COMMAND_LINE is False   # a call with arguments is not the command line

@@ -285,7 +285,7 @@ def test_options_time_out_after_exactly_option_timeout_steps():
 
 
 def test_nan_in_learning_stops_with_a_message(tmp_path):
-    from dscpp_jax.cli import TrainingDiverged, train
+    from dscpp_jax.host_loop import TrainingDiverged, train
     cfg = tiny("mf_dscpp")      # compiled above; TD3 updates (and the finite check) run in warm-up
     s = T.init(jax.random.PRNGKey(0), cfg)
     bad = s.replace(td3=s.td3.replace(critic_params=jax.tree_util.tree_map(
@@ -299,7 +299,7 @@ def test_nan_in_learning_stops_with_a_message(tmp_path):
 def test_a_full_table_without_the_start_warns_once(tmp_path, capsys):
     """A full option table whose regions no longer hold the start cannot grow the link it needs:
     the run says so once, with the fix, and goes on."""
-    from dscpp_jax.cli import stuck_chain_warning, train
+    from dscpp_jax.host_loop import stuck_chain_warning, train
     cfg = tiny("mf_dscpp")      # compiled above
     assert stuck_chain_warning({"options/capacity_hit": 1.0, "options/start_covered": 1.0}, cfg) is None
     assert stuck_chain_warning({"options/capacity_hit": 0.0, "options/start_covered": 0.0}, cfg) is None
@@ -316,7 +316,7 @@ def test_a_full_table_without_the_start_warns_once(tmp_path, capsys):
 def test_a_stalled_link_warns_once(tmp_path, capsys):
     """A link in gestation that has failed 1,000 executions without a success stops the chain:
     the run says so once, naming the option it targets, and goes on."""
-    from dscpp_jax.cli import stalled_link_warning, train
+    from dscpp_jax.host_loop import stalled_link_warning, train
     from dscpp_jax.options import GESTATION
     cfg = tiny("mf_dscpp")      # compiled above
     base = {"options/gestation_executions": 1000.0, "options/gestation_successes": 0.0,
