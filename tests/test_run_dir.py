@@ -188,15 +188,16 @@ def test_run_files_honour_the_umask(tmp_path):
         os.umask(old)
 
 
-def test_train_refuses_an_existing_run(tmp_path, xla_cache):
-    """Through the command line: refused before anything is compiled or written."""
+def test_train_refuses_an_existing_run(tmp_path, capsys):
+    """Through the command line (`main`, as `python -m dscpp_jax.cli` calls it): refused before
+    anything is compiled or written."""
+    from dscpp_jax.cli import main
     d = tmp_path / "run"
     d.mkdir()
     (d / "config.json").write_text("{}")
-    rc, out, err, _ = _cli(["train", "--env", "point_u_maze", "--run-dir", d, "--no-progress"],
-                           xla_cache)
-    assert rc != 0
-    assert "already holds a run" in _last_line(err)
+    assert main(["train", "--env", "point_u_maze", "--run-dir", str(d), "--no-progress"]) == 2
+    _assert_one_line_error_last(capsys.readouterr().err, "already holds a run", "--resume",
+                                "--overwrite")
     assert (d / "config.json").read_text() == "{}"
 
 
