@@ -184,6 +184,19 @@ def _reason(e: BaseException) -> str:
     return f"{type(e).__name__}: {text[:300]}" + ("..." if len(text) > 300 else "")
 
 
+def save_error(e: BaseException, directory: str, run_dir: str, step: int | None = None,
+               kept: list[int] | None = None) -> CheckpointError:
+    """The one-line CheckpointError for a save under `directory` (the checkpoints of run or
+    group directory `run_dir`) that failed with `e` (any type: orbax and tensorstore wrap a full
+    disk in several): the step, the cause, which checkpoints are left and the fix."""
+    what = f"the checkpoint of iteration {step}" if step is not None else "a checkpoint"
+    left = (f"the earlier checkpoints (iterations {kept}) were kept" if kept else
+            "no earlier checkpoint exists" if kept is not None else "the earlier checkpoints "
+            "were kept")
+    return CheckpointError(f"could not save {what} under {directory} ({_reason(e)}); {left}. "
+                           f"Fix: {os_error_fix(e, directory, run_dir)}")
+
+
 class Checkpointer:
     """Periodic whole-state checkpoints under RUN_DIR/checkpoints/<step>/ (step = iteration).
 
@@ -257,10 +270,7 @@ class Checkpointer:
             self._worker = None
 
     def _save_error(self, step: int, e: BaseException) -> CheckpointError:
-        return CheckpointError(
-            f"could not save the checkpoint of iteration {step} under {self.directory} "
-            f"({_reason(e)}); {self._kept()}. Fix: "
-            f"{os_error_fix(e, self.directory, self.run_dir)}")
+        return save_error(e, self.directory, self.run_dir, step, self._steps())
 
     def _finish(self, step: int, like: Any) -> None:
         """The part of a save after orbax's `save` call: the write's end, read-back, pruning.
