@@ -303,17 +303,23 @@ def test_resume_applies_every_allowed_flag_and_accepts_equal_fixed_ones(budget_s
     assert {f: cfg[f] for f in applied} == applied
 
 
-def test_time_budget_of_a_seed_group_and_its_resume(tmp_path_factory, tmp_path, xla_cache,
-                                                     capsys):
-    group = str(tmp_path_factory.mktemp("budget_group") / "group")
+@pytest.fixture(scope="module")
+def budget_group(tmp_path_factory, xla_cache):
+    group = tmp_path_factory.mktemp("budget_group") / "group"
     rc, out, err, seconds = _cli(
         _fresh(group, 10 ** 6, ["--seeds", "0-1", "--time-budget", BUDGET_S]), xla_cache)
+    return str(group), rc, out, err, seconds
+
+
+def test_time_budget_of_a_seed_group_and_its_resume(budget_group, tmp_path, xla_cache, capsys):
+    group, rc, out, err, seconds = budget_group
     _assert_kept_the_budget(group, rc, err, seconds, _startup(group)[0])
+    assert f"--resume {group}" in out
     k = len(_rows(os.path.join(group, "s0")))
     assert k >= 1 and _steps(group)[-1] == k
     for s in (0, 1):
         assert not os.path.exists(os.path.join(group, f"s{s}", "eval.json"))
-    assert f"--resume {group}" in out
+    group = _copy(group, tmp_path, "group")   # the fixture's run stays for the other tests
 
     _refused(_copy(group, tmp_path, "refused"), REFUSED_ON_GROUP_RESUME, capsys)
 
@@ -402,7 +408,25 @@ def test_full_disk_ends_in_one_line(single, tmp_path, xla_cache, where):
     assert rc == 2, err[-3000:]
     _assert_one_line_error_last(err, "is full", f"--resume {run}",
                                 "metrics.csv" if where == "metrics" else "checkpoint")
-    assert _steps(run)[:2] == [1, 2] or _steps(run) == [2]   # what was saved stays
+    assert _steps(run)[:2] == [1, 2]   # what was saved stays (the simulated failure comes
+    # after orbax committed the step's files, so that step may be there too)
+
+
+@pytest.mark.xfail(strict=True, reason="seed_group.GroupCheckpointer passes orbax's and "
+                   "tensorstore's errors on as they are (no fix, no --resume); it needs "
+                   "checkpoint.save_error as checkpoint.Checkpointer has it")
+def test_full_disk_at_a_seed_groups_checkpoint_ends_in_one_line(budget_group, tmp_path,
+                                                                 xla_cache):
+    group = _copy(budget_group[0], tmp_path, "group")
+    before = _steps(group)
+    wrapper = tmp_path / "full_disk.py"
+    wrapper.write_text(FULL_DISK)
+    rc, out, err, _ = _cli([group, "orbax", "train", "--resume", group, "--total-steps", 10 ** 6,
+                            "--checkpoint-every", "1", "--no-progress"], xla_cache,
+                           wrapper=wrapper)
+    assert rc == 2, err[-3000:]
+    assert _steps(group) == before
+    _assert_one_line_error_last(err, "is full", f"--resume {group}", "checkpoint")
 
 
 def test_a_failed_saves_closed_loop_reports_are_dropped():
