@@ -425,7 +425,7 @@ def test_full_disk_at_a_seed_groups_checkpoint_ends_in_one_line(budget_group, tm
                             "--checkpoint-every", "1", "--no-progress"], xla_cache,
                            wrapper=wrapper)
     assert rc == 2, err[-3000:]
-    assert _steps(group) == before
+    assert _steps(group)[:len(before)] == before   # (as for a single run)
     _assert_one_line_error_last(err, "is full", f"--resume {group}", "checkpoint")
 
 
