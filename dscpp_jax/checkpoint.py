@@ -24,6 +24,7 @@ import shutil
 import sys
 import threading
 import time
+import traceback
 from typing import Any
 
 import jax
@@ -59,9 +60,37 @@ class _NoOrbaxTracebacks(logging.Filter):
         return not ("orbax" in (record.pathname or "") or record.name == "asyncio")
 
 
+def closed_loop_report(unraisable) -> bool:
+    """Whether an exception handed to `sys.unraisablehook` is asyncio's "Event loop is closed"
+    from `call_soon_threadsafe`: tensorstore finishing a write of a save that failed, after orbax
+    closed the event loop that waited for it. A failed save leaves one such report per array
+    still being written (hundreds of tracebacks on a full disk), each printed by the default
+    hook; the failure itself reaches the `Checkpointer` call that waits for the save."""
+    if unraisable.exc_type is not RuntimeError or "Event loop is closed" not in str(
+            unraisable.exc_value):
+        return False
+    frames = traceback.extract_tb(unraisable.exc_traceback)
+    return bool(frames) and all(os.path.basename(f.filename) == "base_events.py" and
+                                os.path.basename(os.path.dirname(f.filename)) == "asyncio"
+                                for f in frames)
+
+
+class _NoClosedLoopReports:
+    """`sys.unraisablehook` that drops `closed_loop_report`s and hands the rest to the hook it
+    replaced."""
+
+    def __init__(self, previous):
+        self.previous = previous
+
+    def __call__(self, unraisable) -> None:
+        if not closed_loop_report(unraisable):
+            self.previous(unraisable)
+
+
 def quiet_orbax() -> None:
-    """Install the filters on absl's logger (orbax logs through absl) and asyncio's, once per
-    process."""
+    """Install the filters on absl's logger (orbax logs through absl) and asyncio's, and the
+    `sys.unraisablehook` that drops a failed save's closed-loop reports, once per process (the
+    hook again where something replaced it since)."""
     logger = logging.getLogger("absl")
     if not any(isinstance(f, _NoFalseWaitWarning) for f in logger.filters):
         logger.addFilter(_NoFalseWaitWarning())
@@ -69,6 +98,8 @@ def quiet_orbax() -> None:
         lg = logging.getLogger(name)
         if not any(isinstance(f, _NoOrbaxTracebacks) for f in lg.filters):
             lg.addFilter(_NoOrbaxTracebacks())
+    if not isinstance(sys.unraisablehook, _NoClosedLoopReports):
+        sys.unraisablehook = _NoClosedLoopReports(sys.unraisablehook)
 
 
 def _is_typed_key(x: Any) -> bool:
@@ -153,6 +184,19 @@ def _reason(e: BaseException) -> str:
     return f"{type(e).__name__}: {text[:300]}" + ("..." if len(text) > 300 else "")
 
 
+def save_error(e: BaseException, directory: str, run_dir: str, step: int | None = None,
+               kept: list[int] | None = None) -> CheckpointError:
+    """The one-line CheckpointError for a save under `directory` (the checkpoints of run or
+    group directory `run_dir`) that failed with `e` (any type: orbax and tensorstore wrap a full
+    disk in several): the step, the cause, which checkpoints are left and the fix."""
+    what = f"the checkpoint of iteration {step}" if step is not None else "a checkpoint"
+    left = (f"the earlier checkpoints (iterations {kept}) were kept" if kept else
+            "no earlier checkpoint exists" if kept is not None else "the earlier checkpoints "
+            "were kept")
+    return CheckpointError(f"could not save {what} under {directory} ({_reason(e)}); {left}. "
+                           f"Fix: {os_error_fix(e, directory, run_dir)}")
+
+
 class Checkpointer:
     """Periodic whole-state checkpoints under RUN_DIR/checkpoints/<step>/ (step = iteration).
 
@@ -226,10 +270,7 @@ class Checkpointer:
             self._worker = None
 
     def _save_error(self, step: int, e: BaseException) -> CheckpointError:
-        return CheckpointError(
-            f"could not save the checkpoint of iteration {step} under {self.directory} "
-            f"({_reason(e)}); {self._kept()}. Fix: "
-            f"{os_error_fix(e, self.directory, self.run_dir)}")
+        return save_error(e, self.directory, self.run_dir, step, self._steps())
 
     def _finish(self, step: int, like: Any) -> None:
         """The part of a save after orbax's `save` call: the write's end, read-back, pruning.

@@ -33,8 +33,11 @@ class WandbError(ValueError):
 def os_error_fix(e: BaseException, path: str, resume_dir: Optional[str] = None) -> str:
     """One sentence on why writing `path` failed and what to do about it (errno-aware; finds an
     OSError also where a library wrapped it)."""
-    err, seen = None, e
-    while seen is not None and err is None:
+    err, seen, visited = None, e, set()
+    # the chain can loop: orbax raises one failed save's exception again at each later wait,
+    # which makes it the context of an error raised while it was being handled
+    while seen is not None and err is None and id(seen) not in visited:
+        visited.add(id(seen))
         if isinstance(seen, OSError) and seen.errno:
             err = seen.errno
         seen = seen.__cause__ or seen.__context__
