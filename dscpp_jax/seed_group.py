@@ -55,7 +55,7 @@ from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
 from dscpp_jax import trainer as T
-from dscpp_jax.checkpoint import CKPT_DIR, NONE_SAVED, NoCheckpointError, as_stored, from_stored, \
+from dscpp_jax.checkpoint import save_error, CKPT_DIR, NONE_SAVED, NoCheckpointError, as_stored, from_stored, \
     quiet_orbax
 from dscpp_jax.config import Config
 from dscpp_jax.evaluate import evaluate_episodes_impl, summarize
@@ -484,6 +484,7 @@ class GroupCheckpointer:
     def __init__(self, group_dir: str, keep: int = 2):
         quiet_orbax()
         self._ocp = ocp
+        self.group_dir = group_dir
         self.directory = os.path.abspath(os.path.join(group_dir, CKPT_DIR))
         opts = ocp.CheckpointManagerOptions(max_to_keep=max(1, keep), create=True)
         self.manager = ocp.CheckpointManager(self.directory, options=opts)
@@ -495,13 +496,22 @@ class GroupCheckpointer:
         self.wait()
         storable = jax.tree_util.tree_map(
             lambda x: np.zeros((1,), x.dtype) if _empty(x) else x, as_stored(states))
-        self.manager.save(int(step), args=self._ocp.args.StandardSave(storable), force=True)
+        try:
+            self.manager.save(int(step), args=self._ocp.args.StandardSave(storable), force=True)
+        except Exception as e:  # noqa: BLE001 - orbax / tensorstore wrap OSErrors in many types
+            raise save_error(e, self.directory, self.group_dir, int(step), self._steps()) from e
         if wait:
             self.wait()
 
+    def _steps(self) -> list:
+        return sorted(int(s) for s in self.manager.all_steps())
+
     def wait(self) -> None:
-        """Wait for a save still being written."""
-        self.manager.wait_until_finished()
+        """Wait for a save still being written; a failed one raises a CheckpointError."""
+        try:
+            self.manager.wait_until_finished()
+        except Exception as e:  # noqa: BLE001
+            raise save_error(e, self.directory, self.group_dir, kept=self._steps()) from e
 
     def latest_step(self) -> Optional[int]:
         self.wait()

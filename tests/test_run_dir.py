@@ -412,9 +412,6 @@ def test_full_disk_ends_in_one_line(single, tmp_path, xla_cache, where):
     # after orbax committed the step's files, so that step may be there too)
 
 
-@pytest.mark.xfail(strict=True, reason="seed_group.GroupCheckpointer passes orbax's and "
-                   "tensorstore's errors on as they are (no fix, no --resume); it needs "
-                   "checkpoint.save_error as checkpoint.Checkpointer has it")
 def test_full_disk_at_a_seed_groups_checkpoint_ends_in_one_line(budget_group, tmp_path,
                                                                  xla_cache):
     group = _copy(budget_group[0], tmp_path, "group")
