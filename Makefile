@@ -61,7 +61,7 @@ video: $(STAMP)
 
 # The paper's figures (FIG=4|5|6|A1|A2|A3|all, comma lists too): trains the seed groups they need
 # under runs/paper (skipping finished ones, resuming the others), writes PNG + CSV and a claims
-# table to experiments/results/paper. Re-run the same command to continue. See docs/training.md.
+# table to experiments/results/paper. Re-run the same command to continue. See docs/cli.md.
 reproduce: $(STAMP)
 	$(BIN)/python experiments/reproduce.py --fig $(FIG) $(ARGS)
 

@@ -16,7 +16,7 @@ writes the same numbers, per run and per label.
 
 Every "first reached" figure is the first logged iteration at which the metric is at or above
 the level; a run that never got there counts in "n of N" and not in the median. The in-band
-window lags the policy (``docs/training.md``, "In-band evaluation"), the same for every setting.
+window lags the policy (``docs/run_directory.md``, "metrics"), the same for every setting.
 """
 from __future__ import annotations
 

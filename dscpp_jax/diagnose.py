@@ -1,7 +1,7 @@
 """Why a run's skill chain fails from the start: a reading of its ``metrics.csv`` and ``eval.json``.
 
 The skill chain can fail from the task start in a few recurring ways, each visible in what a run
-already writes (``docs/training.md``; the medium maze in ``experiments/results/paper/README.md``):
+already writes (``docs/cli.md``, "diagnose"; the medium maze in ``experiments/results/README.md``):
 
 - ``falls``: the chain reaches the start, and most failed evaluation episodes end with the ant on
   its back (``eval/flipped_failures``);

@@ -2,12 +2,12 @@
 
 Beyond the paper (both uses are off by default and on in the ant ``fast`` preset where they were
 measured to pay: DSC++'s skill chains on the mazes with dead ends and on four rooms, never the
-paper's baselines, ``config.FRONTIER_CHAINS``; ``docs/training.md``, "The chain's frontier").
+paper's baselines, ``config.FRONTIER_CHAINS``; ``docs/presets.md``, "The chain's frontier").
 The paper grows a linear chain: each new option targets the newest mature one, and learns its
 initiation region from wherever its executions happen to succeed. With diverse starts spread
 uniformly over the maze, that is where most free space lies, so at a junction the chain can turn
 into a dead end; once it has filled the dead end, the option in gestation finds no uncovered state
-within reach of its target and the chain stops (``experiments/results/paper/README.md``). Two uses
+within reach of its target and the chain stops (``experiments/results/README.md``, medium maze). Two uses
 of one probe address that:
 
 - **frontier starts** (``Config.frontier_start_prob``): a share of the training episodes starts in

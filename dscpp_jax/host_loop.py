@@ -148,7 +148,7 @@ def stuck_chain_warning(metrics: dict, cfg: Config, who: str = "") -> Optional[s
     no option's initiation region holds the task start (``options/start_covered``). The original
     algorithm has no cap and would add an option; here no new link can be made, so success from
     the start stays near 0 unless a refit widens an existing region again
-    (``experiments/results/paper/README.md``, "Against the falls")."""
+    (``experiments/results/README.md``, medium maze)."""
     if metrics.get("options/capacity_hit", 0) < 0.5 or metrics.get("options/start_covered", 1) > 0.5:
         return None
     return (f"warning: {who}the option table is full (max_options={cfg.max_options}) and no "
@@ -162,7 +162,7 @@ def stalled_link_warning(metrics: dict, cfg: Config, who: str = "") -> Optional[
     more executions without one success (``options/gestation_executions``,
     ``options/gestation_successes``), or None. Until it matures no new link is made, so the chain
     has stopped growing. Seen on the ant's medium maze, where such a link targeted an option in a
-    dead end while that option's frontier stayed open (``experiments/results/paper/README.md``)."""
+    dead end while that option's frontier stayed open (``experiments/results/README.md``, medium maze)."""
     if not link_stalled(metrics):
         return None
     n = metrics["options/gestation_executions"]
@@ -170,8 +170,8 @@ def stalled_link_warning(metrics: dict, cfg: Config, who: str = "") -> Optional[
     return (f"warning: {who}the option in gestation (it targets option {parent}) has failed "
             f"{int(n)} executions without one success, so the chain has stopped growing there. "
             f"Its target's region is likely out of reach from where its executions start; look at "
-            f"the options' regions (`plot RUN_DIR --regions-only`). docs/training.md, "
-            f"\"A stalled link\", says what to try.")
+            f"the options' regions (`plot RUN_DIR --regions-only`). docs/cli.md, "
+            f"\"diagnose\", says what to try.")
 
 
 def chain_warnings(metrics: dict, cfg: Config, who: str = "") -> list:

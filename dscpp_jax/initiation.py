@@ -217,25 +217,24 @@ def _fit(pos_xy, pos_mask, neg_xy, neg_mask, prev: InitiationClassifiers, cfg: I
 
 
 def fit_initiation(pos_xy, pos_mask, neg_xy, neg_mask, cfg: InitiationConfig = InitiationConfig(),
-                   prev: InitiationClassifiers | None = None, *, solver=None, _inner=None
+                   prev: InitiationClassifiers | None = None, *, solver=None
                    ) -> InitiationClassifiers:
     """Refit one option's classifiers.
 
     pos_xy (P, d), pos_mask (P,), neg_xy (M, d), neg_mask (M,): padded examples + validity.
     prev: the option's current classifiers (kept where a model cannot be refit: no positives, or
     no positive the SVC calls positive); None = unfitted. Jit-able; no retrace across counts.
-    solver: the SMO solver (``svm.resolve_inner``'s argument; None: the platform's default);
-    ``_inner`` is its former name.
+    solver: the SMO solver (``svm.resolve_inner``'s argument; None: the platform's default).
     """
     _check_inputs(pos_xy, pos_mask, neg_xy, neg_mask)
     if prev is None:
         prev = empty_initiation(pos_xy.shape[0], neg_xy.shape[0], pos_xy.shape[1], cfg.gamma)
-    return _fit(pos_xy, pos_mask, neg_xy, neg_mask, prev, cfg=cfg, inner=svm.resolve_inner(_inner if solver is None else solver))
+    return _fit(pos_xy, pos_mask, neg_xy, neg_mask, prev, cfg=cfg, inner=svm.resolve_inner(solver))
 
 
 def fit_initiation_batch(pos_xy, pos_mask, neg_xy, neg_mask, cfg: InitiationConfig = InitiationConfig(),
                          prev: InitiationClassifiers | None = None, dirty=None, *,
-                         solver=None, _inner=None) -> InitiationClassifiers:
+                         solver=None) -> InitiationClassifiers:
     """Refit a batch of K options at once (vmapped SMO on accelerators, see ``BATCH_MODE``).
 
     pos_xy (K, P, d), pos_mask (K, P), neg_xy (K, M, d), neg_mask (K, M); prev: batched
@@ -266,7 +265,7 @@ def fit_initiation_batch(pos_xy, pos_mask, neg_xy, neg_mask, cfg: InitiationConf
 
     mode = BATCH_MODE.get(jax.default_backend(), BATCH_MODE["default"])
     return _fit_batch(pos_xy, pos_mask, neg_xy, neg_mask, prev, dirty, cfg=cfg,
-                      inner=svm.resolve_inner(_inner if solver is None else solver), mode=mode)
+                      inner=svm.resolve_inner(solver), mode=mode)
 
 
 @functools.partial(jax.jit, static_argnames=("cfg", "inner", "mode"))

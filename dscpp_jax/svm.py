@@ -183,7 +183,6 @@ class SVMModel:
 # Argument checks (trace time; only concrete values can be checked)
 
 
-_resolve_inner = resolve_inner   # the old name, still used by experiments/bench_options.py
 
 
 def _concrete(value: Any):

@@ -338,7 +338,6 @@ def inband_init(key: jax.Array, config: Config) -> InbandState:
 
 init_jit = jax.jit(init_impl, static_argnames=("config",))
 """Jitted `init_impl(key, config)` (`init` validates its arguments first, then calls this)."""
-_init_jit = init_jit   # the old name, still used by experiments/profile_startup.py
 
 
 # ------------------------------------------------------------------------------------------------
@@ -614,18 +613,3 @@ def train_step_group_impl(states: TrainState) -> Tuple[TrainState, Dict[str, jax
     return jax.vmap(functools.partial(train_step_impl, seed_axis=SEED_AXIS),
                     axis_name=SEED_AXIS)(states)
 
-
-# ------------------------------------------------------------------------------------------------
-# Former private names, still used by scripts under experiments/
-# ------------------------------------------------------------------------------------------------
-_rollout = rollout
-_learn = learn
-_value_fn = acting.value_fn
-_value_net = acting.value_net
-_mpc_actions = acting.mpc_actions
-_dynamics_fit_normaliser = learning.fit_normaliser
-_dynamics_updates = learning.dynamics_updates
-_refit = learning.refit
-_grow_chain = learning.grow_chain
-_chain_metrics = acting.chain_metrics
-_all_finite = learning.all_finite

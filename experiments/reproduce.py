@@ -1510,7 +1510,7 @@ def write_readme(data: Data, args, figures: dict, status: dict) -> str:
     why = failure_lines(data)
     if why:
         lines += ["", "How each group's seeds end (`python -m dscpp_jax.cli diagnose GROUP_DIR` "
-                  "gives the row per seed; the verdicts are explained in `docs/training.md`):", ""]
+                  "gives the row per seed; the verdicts are explained in `docs/cli.md`, diagnose):", ""]
         lines += why
     other = mismatch_lines(data, args)
     if other:
