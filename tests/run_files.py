@@ -27,8 +27,10 @@ from concurrent.futures import ThreadPoolExecutor, as_completed
 FAST_XLA = "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true"
 FULL_XLA = {"test_trainer.py", "test_svm.py"}
 # Longest first, so that the last file to start is a short one (seconds on the 2-core CI machine).
-LONGEST_FIRST = ["test_trainer.py", "test_inband.py", "test_seed_group.py", "test_reproduce.py",
-                 "test_envs_ant.py", "test_td3.py", "test_option_critics.py", "test_mpc.py"]
+LONGEST_FIRST = ["test_trainer.py", "test_option_learners.py", "test_inband.py",
+                 "test_seed_group.py", "test_run_dir.py", "test_reproduce.py", "test_envs_ant.py",
+                 "test_td3.py", "test_option_critics.py", "test_redesign_parity.py",
+                 "test_profile_train_step.py", "test_options.py", "test_mpc.py"]
 
 
 def _order(files: list[pathlib.Path]) -> list[pathlib.Path]:

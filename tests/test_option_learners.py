@@ -3,7 +3,7 @@ on the observation alone; mf_dscpp with shared_critic=false: goal-conditioned). 
 against a NumPy reference, each option learning only from its own transitions (one step per own
 new transition) while the global option learns from all, new options starting as the global
 option's copy, the per-option exploration schedule, region success and the global option's
-timeout, and dsc and dual learning the point-mass U-maze."""
+timeout, and dsc learning the point-mass U-maze."""
 import multiprocessing
 import os
 import sys
@@ -234,7 +234,7 @@ def test_region_options_succeed_anywhere_in_their_target_and_the_global_option_s
 
 
 # ------------------------------------------------------------------------------------------------
-# dsc and dual learn the point-mass U-maze (each in a worker process started with this module)
+# dsc learns the point-mass U-maze (in a worker process started with this module)
 # ------------------------------------------------------------------------------------------------
 LEARN_ITERS = 64
 LEARN_THRESHOLD = 0.75
@@ -264,8 +264,7 @@ def _learn_job(algo):
         float(m["train/episode_success"])
 
 
-_JOBS = {"test_baselines_learn_point_u_maze[dsc]": ("dsc",),
-         "test_baselines_learn_point_u_maze[dual]": ("dual",)}
+_JOBS = {"test_baselines_learn_point_u_maze[dsc]": ("dsc",)}
 
 
 def _worker_setup(path):
@@ -293,7 +292,7 @@ def background(request, tmp_path_factory):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("algo", ["dsc", "dual"])
+@pytest.mark.parametrize("algo", ["dsc"])
 def test_baselines_learn_point_u_maze(algo, background, request):
     """A policy that learned nothing reaches the goal from none or one of the route starts; the
     chain must have grown beyond the goal option to cover them."""
