@@ -23,6 +23,7 @@ from dscpp_jax.options import FREE, GESTATION, MATURE
 from dscpp_jax.replay import RegionStep, replay_add, replay_group_index, replay_init
 from dscpp_jax.td3 import (td3_copy_option, td3_init_per_option, td3_option, td3_target_noise,
                            td3_updates_options)
+from tests.numpy_nets import np_mlp, to_np
 from tests.trainer_fixtures import tiny
 
 OBS, ACT, K, NE, ROWS = 4, 2, 4, 4, 12
@@ -75,24 +76,14 @@ def _replay(seed, perturb_option=None, goal_dim=2):
 # ------------------------------------------------------------------------------------------------
 # NumPy reference of the region TD3's networks and targets (as tests/test_td3.py's oracle)
 # ------------------------------------------------------------------------------------------------
-def _np(tree):
-    return jax.tree_util.tree_map(lambda x: np.asarray(x, np.float64), tree)
-
-
-def _np_mlp(p, x, n_hidden):
-    for i in range(n_hidden):
-        x = np.maximum(x @ p[f"hidden_{i}"]["kernel"] + p[f"hidden_{i}"]["bias"], 0.0)
-    return x @ p["out"]["kernel"] + p["out"]["bias"]
-
-
 def np_actor(params, obs, n_hidden=2):
-    return np.tanh(_np_mlp(_np(params)["params"], obs, n_hidden))      # no goal input
+    return np.tanh(np_mlp(to_np(params)["params"], obs, n_hidden))      # no goal input
 
 
 def np_twin_q(params, obs, act, n_hidden=2):
-    heads = _np(params)["params"]["heads"]
+    heads = to_np(params)["params"]["heads"]
     x = np.concatenate([obs, act], -1)
-    return np.stack([_np_mlp(jax.tree_util.tree_map(lambda l: l[i], heads), x, n_hidden)[..., 0]
+    return np.stack([np_mlp(jax.tree_util.tree_map(lambda l: l[i], heads), x, n_hidden)[..., 0]
                      for i in range(2)])
 
 

@@ -14,31 +14,22 @@ from dscpp_jax.her import her_sample
 from dscpp_jax.replay import Transition, TrajStep, replay_add, replay_init
 from dscpp_jax.td3 import (TD3Config, td3_act, td3_explore as _td3_explore, td3_init, td3_random_prob,
                            td3_target_noise, td3_targets, td3_update, td3_updates, td3_value)
+from tests.numpy_nets import np_mlp, to_np
 
 OBS, GOAL, ACT, B = 6, 2, 3, 64
 
 
-def _np(tree):
-    return jax.tree_util.tree_map(lambda x: np.asarray(x, np.float64), tree)
-
-
-def _np_mlp(p, x, n_hidden):
-    for i in range(n_hidden):
-        x = np.maximum(x @ p[f"hidden_{i}"]["kernel"] + p[f"hidden_{i}"]["bias"], 0.0)
-    return x @ p["out"]["kernel"] + p["out"]["bias"]
-
-
 def np_actor(cfg, params, obs, goal):
-    a = _np_mlp(_np(params)["params"], np.concatenate([obs, goal], -1), len(cfg.hidden))
+    a = np_mlp(to_np(params)["params"], np.concatenate([obs, goal], -1), len(cfg.hidden))
     if cfg.output_normalisation:
         return a / np.maximum(1.0, np.abs(a).mean(-1, keepdims=True))
     return cfg.max_action * np.tanh(a)
 
 
 def np_twin_q(cfg, params, obs, goal, act):
-    heads = _np(params)["params"]["heads"]
+    heads = to_np(params)["params"]["heads"]
     x = np.concatenate([obs, goal, act], -1)
-    return np.stack([_np_mlp(jax.tree_util.tree_map(lambda l: l[i], heads), x, len(cfg.hidden))[..., 0]
+    return np.stack([np_mlp(jax.tree_util.tree_map(lambda l: l[i], heads), x, len(cfg.hidden))[..., 0]
                      for i in range(2)])
 
 
@@ -82,7 +73,7 @@ CFGS = [TD3Config.model_free(hidden=(32, 32)), TD3Config.model_based(hidden=(32,
 def test_networks_and_targets_match_numpy(cfg):
     st = _perturbed_state(cfg)
     b = _batch(1)
-    bn = _np(b)
+    bn = to_np(b)
     # actor (tanh / output normalisation) and td3_act clipping
     a_ref = np_actor(cfg, st.actor_params, bn.obs, bn.goal)
     np.testing.assert_allclose(np.asarray(_act(cfg, st.actor_params, b.obs, b.goal)),
@@ -162,7 +153,7 @@ def test_update_critic_loss_delay_and_polyak_targets():
     assert float(m2["actor_updated"]) == 1.0 and not same(s2.actor_params, s1.actor_params)
     for tgt, old, onl in [(s2.target_actor_params, s1.target_actor_params, s2.actor_params),
                           (s2.target_critic_params, s1.target_critic_params, s2.critic_params)]:
-        for t, o, n in zip(*(jax.tree_util.tree_leaves(_np(p)) for p in (tgt, old, onl))):
+        for t, o, n in zip(*(jax.tree_util.tree_leaves(to_np(p)) for p in (tgt, old, onl))):
             np.testing.assert_allclose(t, 0.9 * o + 0.1 * n, rtol=1e-5, atol=1e-6)
     # the actor step followed the policy gradient of Q1: Q1(s, pi(s)) went up on this batch
     q1 = lambda s: float(np.mean(np_twin_q(cfg, s.critic_params, np.asarray(b.obs), np.asarray(b.goal),
