@@ -17,8 +17,7 @@ One TD3 per option (``Config.per_option_td3``): :func:`td3_init_per_option` stac
 independent states on a leading option axis, :func:`td3_option` picks one out (per env under a
 vmap) and :func:`td3_set_option` writes one back, :func:`td3_copy_option` starts new options as
 copies of another (the global option's), and :func:`td3_updates_options` gives each option a
-given number of gradient steps on minibatches of its own data. (:func:`td3_updates_per_option`
-is the older rule: one budget of steps shared in proportion to each option's replay entries.)
+given number of gradient steps on minibatches of its own data.
 
 All functions take the frozen config as their first (static) argument; jit them with
 ``static_argnums=0`` or call them inside your own jitted code.
@@ -529,74 +528,6 @@ def td3_option(state: TD3State, option: jax.Array) -> TD3State:
     """Option ``option``'s TD3State out of per-option states (a traced index works; under a vmap
     over ``option`` each row gathers its own)."""
     return jax.tree_util.tree_map(lambda x: x[option], state)
-
-
-def td3_updates_per_option(
-    cfg: TD3Config,
-    state: TD3State,
-    buffer: PyTree,
-    option_ids: jax.Array,
-    key: jax.Array,
-    num_steps: int,
-    sample_fn: Callable[[jax.Array, PyTree, int], Transition],
-    sample_block: int = 1,
-    seed_axis: Optional[str] = None,
-) -> Tuple[TD3State, Dict[str, jax.Array]]:
-    """``num_steps`` gradient steps shared among the per-option TD3s of ``state`` (see
-    :func:`td3_init_per_option`), each option learning only from its own transitions.
-
-    The steps come in rounds of ``sample_block`` (the remainder in rounds of one). Each round goes
-    to one option, drawn with probability proportional to its entries in the replay
-    (``option_ids == k``, ``option_ids`` has the buffer's ``valid`` shape), and runs
-    :func:`td3_update` on minibatches drawn from the view of the buffer whose ``valid`` mask holds
-    only that option's entries. So the options together take as many steps as one shared TD3, and
-    an option learns in proportion to the experience it collected, as when each option's TD3
-    takes a step per transition it gathers. An option without entries is never drawn and keeps
-    its state; with an empty buffer nothing changes. ``buffer`` must be a
-    :class:`dscpp_jax.replay.Replay`.
-
-    Metrics: means over the steps; ``options_learning`` counts the options that took a step."""
-    num_steps, sample_block = int(num_steps), int(sample_block)
-    if num_steps < 1:
-        raise ValueError(f"td3_updates_per_option: num_steps must be >= 1, got {num_steps}")
-    if sample_block < 1:
-        raise ValueError(f"td3_updates_per_option: sample_block must be >= 1, got {sample_block}")
-    K = jax.tree_util.tree_leaves(state)[0].shape[0]
-    n = cfg.batch_size
-    # entries per option (invalid ones counted in an extra bin K and dropped)
-    counts = jnp.bincount(jnp.where(buffer.valid, option_ids, K).reshape(-1), length=K + 1)[:K]
-    has_any = jnp.sum(counts) > 0
-    logits = jnp.where(counts > 0, jnp.log(jnp.maximum(counts, 1).astype(jnp.float32)), -jnp.inf)
-
-    def round_(st_all, kk, block):
-        k_opt, k_s, k_u = jax.random.split(kk, 3)
-        k = jnp.where(has_any, jax.random.categorical(k_opt, jnp.where(has_any, logits, 0.0)), 0)
-        view = buffer.replace(valid=buffer.valid & (option_ids == k))
-        batches = jax.tree_util.tree_map(lambda x: x.reshape((block, n) + x.shape[1:]),
-                                         sample_fn(k_s, view, block * n))
-        st, ms = _scan_updates(cfg, td3_option(st_all, k), (batches, jax.random.split(k_u, block)),
-                               lambda bk: bk, seed_axis)
-        st_all = jax.tree_util.tree_map(
-            lambda a, b: a.at[k].set(jnp.where(has_any, b, a[k])), st_all, st)
-        return st_all, (ms, jnp.broadcast_to(k, (block,)))
-
-    n_blocks, rest = divmod(num_steps, sample_block)
-    k_blocks, k_rest = jax.random.split(key)
-    parts = []
-    if n_blocks:
-        state, got = jax.lax.scan(lambda s, kk: round_(s, kk, sample_block), state,
-                                  jax.random.split(k_blocks, n_blocks))
-        parts.append(jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:]), got))
-    if rest:
-        state, got = jax.lax.scan(lambda s, kk: round_(s, kk, 1), state,
-                                  jax.random.split(k_rest, rest))
-        parts.append(jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:]), got))
-    ms, chosen = jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs), *parts)
-    w = has_any.astype(jnp.float32)
-    metrics = {k: w * v for k, v in _summarise(ms).items()}
-    metrics["options_learning"] = w * jnp.sum(
-        (jnp.bincount(chosen, length=K) > 0).astype(jnp.float32))
-    return state, metrics
 
 
 def td3_set_option(state: TD3State, option: jax.Array, row: TD3State) -> TD3State:

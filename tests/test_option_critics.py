@@ -2,7 +2,6 @@
 axis, options that never ran keep their initial networks, each option learns only from its own
 transitions, acting and evaluation use the running option's actor, and MF-DSC++ trains, evaluates
 and resumes from a checkpoint exactly."""
-import functools
 
 import jax
 import jax.numpy as jnp
@@ -15,8 +14,7 @@ from dscpp_jax import acting as A
 from dscpp_jax import trainer as T
 from dscpp_jax.her import her_sample
 from dscpp_jax.replay import TrajStep, replay_add, replay_init
-from dscpp_jax.td3 import (TD3Config, td3_act, td3_init, td3_init_per_option, td3_option,
-                           td3_updates_per_option)
+from dscpp_jax.td3 import TD3Config, td3_act, td3_init, td3_init_per_option, td3_option
 from tests.trainer_fixtures import assert_trees_equal, tiny
 
 OBS, GOAL, ACT, K, NE, ROWS = 4, 2, 2, 3, 4, 12
@@ -51,71 +49,6 @@ def _buffer(seed, option_of_env=(1, 1, 2, 2), extra=None):
                                        jnp.asarray(goal[t]), jnp.asarray(seg[t]),
                                        option=jnp.asarray(opt[t])))
     return buf
-
-
-def _sample(k, b, n):
-    return her_sample(k, b, n, strategy="future", max_segment=4)
-
-
-@functools.partial(jax.jit, static_argnums=(3, 4))
-def _per_option(states, buf, key, steps=4, block=1):
-    return td3_updates_per_option(CFG, states, buf, buf.data.option, key, steps, _sample,
-                                  sample_block=block)
-
-
-def _steps(states):
-    return np.asarray(states.step)
-
-
-def _kernel(states, o):
-    return np.asarray(td3_option(states, o).critic_params["params"]["heads"]["out"]["kernel"])
-
-
-def test_options_share_the_steps_and_learn_only_from_their_own_transitions():
-    init = jax.jit(lambda k: td3_init_per_option(k, K, OBS, GOAL, ACT, CFG))(jax.random.key(0))
-    leaves = jax.tree_util.tree_leaves(init)
-    assert all(x.shape[0] == K for x in leaves)
-    # initialised like the shared TD3, one key each
-    one = jax.jit(lambda k: td3_init(k, OBS, GOAL, ACT, CFG))   # jitted: eager init costs ~4 s
-    assert_trees_equal(td3_option(init, 1), one(jax.random.split(jax.random.key(0), K)[1]))
-    key = jax.random.key(5)
-    buf = _buffer(0)
-    new, m = _per_option(init, buf, key, 40)
-    # option 0 has no transitions: every leaf (params, targets, Adam states, step) unchanged
-    assert_trees_equal(td3_option(new, 0), td3_option(init, 0))
-    # the 40 steps of one shared TD3, shared by the two options that have data
-    steps = _steps(new) - _steps(init)
-    assert steps[0] == 0 and steps.sum() == 40 and steps[1] > 0 and steps[2] > 0, steps
-    assert float(m["options_learning"]) == 2.0 and np.isfinite(float(m["critic_loss"]))
-    for o in (1, 2):
-        assert not np.array_equal(_kernel(new, o), _kernel(init, o))
-    # option 2's data changed (same positions, other values): option 1's update is bitwise the
-    # same (which option learns in a round depends only on the key and the entry counts),
-    # option 2's is not
-    new2, _ = _per_option(init, _buffer(0, extra=(2, 3.0)), key, 40)
-    assert_trees_equal(td3_option(new2, 1), td3_option(new, 1))
-    assert_trees_equal(td3_option(new2, 0), td3_option(init, 0))
-    assert not np.array_equal(_kernel(new2, 2), _kernel(new, 2))
-
-
-def test_steps_go_to_options_in_proportion_to_their_entries():
-    init = jax.jit(lambda k: td3_init_per_option(k, K, OBS, GOAL, ACT, CFG))(jax.random.key(0))
-    buf = _buffer(2, option_of_env=(1, 2, 2, 2))      # option 2 holds 3 times option 1's entries
-    new, _ = _per_option(init, buf, jax.random.key(3), 400)
-    steps = _steps(new) - _steps(init)
-    assert steps[0] == 0 and steps.sum() == 400
-    # binomial(400, 1/4): mean 100, sd 8.7
-    assert 70 <= steps[1] <= 130, steps
-    # rounds of 4 steps, the remainder in rounds of one: 10 = 2 rounds of 4 + 2 of 1
-    new, m = _per_option(init, buf, jax.random.key(4), 10, 4)
-    steps = _steps(new) - _steps(init)
-    assert steps.sum() == 10 and set(steps.tolist()) <= {0, 1, 2, 4, 5, 6, 8, 9, 10}, steps
-    assert np.isfinite(float(m["critic_loss"]))
-    # an empty buffer: nothing learns, nothing changes
-    empty = buf.replace(valid=jnp.zeros_like(buf.valid))
-    new, m = _per_option(init, empty, jax.random.key(5), 8, 4)
-    assert_trees_equal(new, init)
-    assert float(m["options_learning"]) == 0.0 and float(m["critic_loss"]) == 0.0
 
 
 def test_masked_view_samples_only_that_options_transitions():
