@@ -35,8 +35,8 @@ from dscpp_jax.host_loop import Budget, Interrupt, LoopHooks, Progress, Training
 from dscpp_jax.run_dir import (GROUP_FILE, check_fresh, group_of, is_group_dir,  # noqa: F401
                                load_group, load_seed, lock_run_dir, previous_wall, read_group,
                                seed_dir, seed_dirs)
-from dscpp_jax.run_logging import (RunLogger, StartupClock, library_versions, read_config,
-                                   write_config)
+from dscpp_jax.run_logging import (RunLogger, StartupClock, atomic_write, library_versions,
+                                   read_config, write_config)
 
 __all__ = ["GROUP_FILE", "GroupTooLarge", "STATE_COPIES", "available_memory",
            "check_group_memory", "default_group_dir", "group_of", "is_group_dir", "load_group",
@@ -64,8 +64,11 @@ def _write_group_json(group_dir: str, cfg: Config, seeds, mesh, extra=None) -> N
                "devices": [str(d) for d in jax.devices()], "mesh": {"seeds": int(mesh.size)},
                "process_count": jax.process_count(), "versions": library_versions()}
     payload.update(extra or {})
-    with open(os.path.join(group_dir, GROUP_FILE), "w") as f:
-        json.dump(payload, f, indent=2, sort_keys=True)
+    try:
+        atomic_write(os.path.join(group_dir, GROUP_FILE),
+                     json.dumps(payload, indent=2, sort_keys=True))
+    except OSError as e:
+        raise HL.write_error(group_dir, e, f"write {GROUP_FILE}") from None
 
 
 class GroupTooLarge(ValueError):
@@ -267,9 +270,12 @@ def train_group(cfg: Config, seeds: Sequence[int], group_dir: Optional[str] = No
         env_cfg = dataclasses.asdict(T.make_env(cfg).config)
         _write_group_json(group_dir, cfg, seeds, mesh, {"env": env_cfg})
         for i, (d, c_) in enumerate(zip(dirs, cfgs)):
-            write_config(d, c_.to_dict(), {"command": " ".join(sys.argv), "env": env_cfg,
-                                           "group": os.path.abspath(group_dir),
-                                           "group_index": i})
+            try:
+                write_config(d, c_.to_dict(), {"command": " ".join(sys.argv), "env": env_cfg,
+                                               "group": os.path.abspath(group_dir),
+                                               "group_index": i})
+            except OSError as e:
+                raise HL.write_error(d, e, "write config.json") from None
     loggers = ([RunLogger(d, resume_iteration=int(it)) for d, it in zip(dirs, counters[2])]
                if lead else [])
     walls = [previous_wall(d) for d in dirs] if lead else [0.0] * n
@@ -355,8 +361,11 @@ def train_group(cfg: Config, seeds: Sequence[int], group_dir: Optional[str] = No
         for i, d in enumerate(dirs):
             out = dict(summaries[i], iteration=int(c.iteration[i]), env_steps=int(c.env_steps[i]),
                        episodes_trained=int(c.episodes[i]), seed=seeds[i])
-            with open(os.path.join(d, "eval.json"), "w") as f:
-                json.dump(out, f, indent=2)
+            try:
+                with open(os.path.join(d, "eval.json"), "w") as f:
+                    json.dump(out, f, indent=2)
+            except OSError as e:
+                raise HL.write_error(d, e, "write eval.json") from None
         if plot:
             plot(group_dir, cfgs, dirs, host, res)
     return states, group_dir, summaries
@@ -379,10 +388,15 @@ def update_configs(group_dir: str, cfg: Config, seeds) -> None:
     """After a resume with a changed schedule: record it in group.json and each config.json."""
     g = read_group(group_dir)
     g["config"] = cfg.to_dict()
-    with open(os.path.join(group_dir, GROUP_FILE), "w") as f:
-        json.dump(g, f, indent=2, sort_keys=True)
+    try:
+        atomic_write(os.path.join(group_dir, GROUP_FILE), json.dumps(g, indent=2, sort_keys=True))
+    except OSError as e:
+        raise HL.write_error(group_dir, e, f"update {GROUP_FILE}") from None
     for s in seeds:
         d = seed_dir(group_dir, s)
         payload = read_config(d)
-        write_config(d, cfg.override(seed=s).to_dict(),
-                     {k: v for k, v in payload.items() if k not in ("config", "versions")})
+        try:
+            write_config(d, cfg.override(seed=s).to_dict(),
+                         {k: v for k, v in payload.items() if k not in ("config", "versions")})
+        except OSError as e:
+            raise HL.write_error(d, e, "update config.json") from None

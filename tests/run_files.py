@@ -11,13 +11,19 @@ test_trainer.py (its learning runs execute more than they compile, and it compar
 interpreted MPC kernel with XLA's path at 1e-5) and test_svm.py (it compares the interpreted SMO
 kernel with XLA's loop, which at the lowest optimisation level round apart on jax 0.10.2).
 
-    python tests/run_files.py [--jobs N] [FILES...]
+The files share one JAX persistent compilation cache, a fresh temporary directory removed at the
+end: many files (and the command-line processes they start) compile the same programs for the
+same small configs, and a program loaded from the cache is the compiled one, so it computes the
+same numbers. `--compile-cache off` compiles everything in every process.
+
+    python tests/run_files.py [--jobs N] [--compile-cache off] [FILES...]
 """
 from __future__ import annotations
 
 import argparse
 import os
 import pathlib
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -27,10 +33,10 @@ from concurrent.futures import ThreadPoolExecutor, as_completed
 FAST_XLA = "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true"
 FULL_XLA = {"test_trainer.py", "test_svm.py"}
 # Longest first, so that the last file to start is a short one (seconds on the 2-core CI machine).
-LONGEST_FIRST = ["test_trainer.py", "test_option_learners.py", "test_inband.py",
-                 "test_seed_group.py", "test_run_dir.py", "test_reproduce.py", "test_envs_ant.py",
-                 "test_td3.py", "test_option_critics.py", "test_redesign_parity.py",
-                 "test_profile_train_step.py", "test_options.py", "test_mpc.py"]
+LONGEST_FIRST = ["test_trainer.py", "test_inband.py", "test_seed_group.py", "test_reproduce.py",
+                 "test_option_learners.py", "test_run_dir.py", "test_envs_ant.py", "test_td3.py",
+                 "test_option_critics.py", "test_redesign_parity.py", "test_profile_train_step.py",
+                 "test_options.py", "test_mpc.py"]
 
 
 def _order(files: list[pathlib.Path]) -> list[pathlib.Path]:
@@ -38,22 +44,33 @@ def _order(files: list[pathlib.Path]) -> list[pathlib.Path]:
     return sorted(files, key=lambda f: (rank.get(f.name, len(rank)), f.name))
 
 
-def _run(path: pathlib.Path) -> tuple[pathlib.Path, int, float, str]:
-    env = dict(os.environ)
+def _cache_env(path: str) -> dict:
+    """JAX's settings for a persistent compilation cache in `path` that keeps every program."""
+    return {"JAX_COMPILATION_CACHE_DIR": path, "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0",
+            "JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES": "-1"}
+
+
+def _run(path: pathlib.Path, cache: str | None) -> tuple[pathlib.Path, int, float, float, str]:
+    env = dict(os.environ, **(_cache_env(cache) if cache else {}))
     if path.name not in FULL_XLA:
         env["XLA_FLAGS"] = f"{env['XLA_FLAGS']} {FAST_XLA}" if env.get("XLA_FLAGS") else FAST_XLA
     start = time.monotonic()
     with tempfile.TemporaryFile("w+") as log:
-        rc = subprocess.call([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
-                              str(path)], stdout=log, stderr=subprocess.STDOUT, env=env)
+        proc = subprocess.Popen([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
+                                 str(path)], stdout=log, stderr=subprocess.STDOUT, env=env)
+        _, status, usage = os.wait4(proc.pid, 0)   # the file's CPU time, its subprocesses included
+        proc.returncode = os.waitstatus_to_exitcode(status)
         log.seek(0)
-        return path, rc, time.monotonic() - start, log.read()
+        return (path, proc.returncode, time.monotonic() - start, usage.ru_utime + usage.ru_stime,
+                log.read())
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1),
                     help="test files at a time (default: 2, or 1 on a one-core machine)")
+    ap.add_argument("--compile-cache", choices=["on", "off"], default="on",
+                    help="share one compilation cache between the files (default: on)")
     ap.add_argument("files", nargs="*", help="test files (default: tests/test_*.py)")
     args = ap.parse_args(argv)
     if args.jobs < 1:
@@ -65,19 +82,27 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"no such test file: {', '.join(missing)}")
     start = time.monotonic()
     failed = []
-    with ThreadPoolExecutor(args.jobs) as pool:
-        futures = [pool.submit(_run, f) for f in _order(files)]  # started in this order
-        for future in as_completed(futures):
-            path, rc, secs, out = future.result()
-            print(f"== {path.name} ({secs:.0f} s, {'passed' if rc == 0 else 'FAILED'})")
-            print(out, end="", flush=True)
-            if rc != 0:
-                failed.append(path.name)
+    cpu_total = 0.0
+    cache = tempfile.mkdtemp(prefix="dscpp_jax_tests_xla_") if args.compile_cache == "on" else None
+    try:
+        with ThreadPoolExecutor(args.jobs) as pool:
+            futures = [pool.submit(_run, f, cache) for f in _order(files)]  # started in this order
+            for future in as_completed(futures):
+                path, rc, secs, cpu, out = future.result()
+                cpu_total += cpu
+                print(f"== {path.name} ({secs:.0f} s, {cpu:.0f} CPU-s, "
+                      f"{'passed' if rc == 0 else 'FAILED'})")
+                print(out, end="", flush=True)
+                if rc != 0:
+                    failed.append(path.name)
+    finally:
+        if cache:
+            shutil.rmtree(cache, ignore_errors=True)
     total = time.monotonic() - start
     if failed:
-        print(f"some test files FAILED ({', '.join(failed)}); {total:.0f} s")
+        print(f"some test files FAILED ({', '.join(failed)}); {total:.0f} s, {cpu_total:.0f} CPU-s")
         return 1
-    print(f"all test files passed; {total:.0f} s with {args.jobs} at a time")
+    print(f"all test files passed; {total:.0f} s ({cpu_total:.0f} CPU-s) with {args.jobs} at a time")
     return 0
 
 

@@ -4,10 +4,6 @@ against a NumPy reference, each option learning only from its own transitions (o
 new transition) while the global option learns from all, new options starting as the global
 option's copy, the per-option exploration schedule, region success and the global option's
 timeout, and dsc learning the point-mass U-maze."""
-import multiprocessing
-import os
-import sys
-from concurrent.futures import ProcessPoolExecutor
 
 import jax
 import jax.numpy as jnp
@@ -24,7 +20,7 @@ from dscpp_jax.replay import RegionStep, replay_add, replay_group_index, replay_
 from dscpp_jax.td3 import (td3_copy_option, td3_init_per_option, td3_option, td3_target_noise,
                            td3_updates_options)
 from tests.numpy_nets import np_mlp, to_np
-from tests.trainer_fixtures import tiny
+from tests.trainer_fixtures import background_jobs, tiny
 
 OBS, ACT, K, NE, ROWS = 4, 2, 4, 4, 12
 OPTION_OF_ENV = (0, 1, 1, 2)      # env column e ran option OPTION_OF_ENV[e]; option 3 never ran
@@ -258,28 +254,12 @@ def _learn_job(algo):
 _JOBS = {"test_baselines_learn_point_u_maze[dsc]": ("dsc",)}
 
 
-def _worker_setup(path):
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND)
-    os.dup2(fd, 1)
-    os.dup2(fd, 2)
-
-
 @pytest.fixture(scope="module", autouse=True)
 def background(request, tmp_path_factory):
     """The learning jobs of the selected tests, each started in a worker process of its own (a
     fresh JAX) before the first test of this module runs; {test name: future}."""
-    here = sys.modules[__name__]
-    jobs = [n for n in _JOBS if any(getattr(item, "module", None) is here and item.name == n
-                                    for item in request.session.items)]
-    if not jobs:
-        yield {}
-        return
-    log = str(tmp_path_factory.mktemp("background") / "worker.log")
-    pool = ProcessPoolExecutor(len(jobs), mp_context=multiprocessing.get_context("spawn"),
-                               initializer=_worker_setup, initargs=(log,))
-    futures = {n: pool.submit(_learn_job, *_JOBS[n]) for n in jobs}
-    yield futures
-    pool.shutdown(wait=True, cancel_futures=True)
+    yield from background_jobs(request, tmp_path_factory,
+                               {name: (_learn_job, args) for name, args in _JOBS.items()})
 
 
 @pytest.mark.slow

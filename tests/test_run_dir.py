@@ -346,7 +346,8 @@ FULL_DISK = textwrap.dedent('''
     """Run the command line (`dscpp_jax.cli.main`) on a run directory whose disk fills up.
 
         python full_disk.py RUN_DIR files TRIGGER ARGS...   once a file under RUN_DIR whose path
-            holds TRIGGER is opened for writing, every later write under RUN_DIR fails (ENOSPC)
+            holds TRIGGER is opened for writing, every later write under RUN_DIR fails (ENOSPC,
+            naming no file, as a write on a full disk fails)
         python full_disk.py RUN_DIR orbax ARGS...   orbax's writing of a checkpoint's files fails
             as tensorstore reports a full disk (a ValueError, RESOURCE_EXHAUSTED)
     """
@@ -365,7 +366,7 @@ FULL_DISK = textwrap.dedent('''
         if p.startswith(run_dir + os.sep):
             full[0] = full[0] or trigger in p
             if full[0]:
-                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), p)
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
 
     def full_open(file, mode="r", *a, **k):
         check(file, any(c in mode for c in "wax+"))
@@ -424,6 +425,24 @@ def test_full_disk_at_a_seed_groups_checkpoint_ends_in_one_line(budget_group, tm
     assert rc == 2, err[-3000:]
     assert _steps(group)[:len(before)] == before   # (as for a single run)
     _assert_one_line_error_last(err, "is full", f"--resume {group}", "checkpoint")
+
+
+@pytest.mark.parametrize("name", ["eval.json", "group.json"])
+def test_full_disk_at_a_seed_groups_files_ends_in_one_line(budget_group, tmp_path, xla_cache,
+                                                           name):
+    """A resume to the schedule's end writes each seed's eval.json, then the group's updated
+    group.json: a full disk there ends in one line that names the file."""
+    group = _copy(budget_group[0], tmp_path, "group")
+    k = len(_rows(os.path.join(group, "s0")))
+    wrapper = tmp_path / "full_disk.py"
+    wrapper.write_text(FULL_DISK)
+    rc, out, err, _ = _cli([group, "files", name, "train", "--resume", group, "--total-steps",
+                            (k + 1) * STEPS_PER_ITERATION, "--no-progress"], xla_cache,
+                           wrapper=wrapper)
+    assert rc == 2, err[-3000:]
+    _assert_one_line_error_last(err, "is full", name)
+    with open(os.path.join(group, "group.json")) as f:
+        json.load(f)   # a failed update leaves the group's file whole
 
 
 def test_a_failed_saves_closed_loop_reports_are_dropped():

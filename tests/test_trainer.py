@@ -1,10 +1,6 @@
 """Trainer: config validation, no retracing, vmap over seeds, evaluation without side effects,
 the policy constructor, NaN handling, and real learning on the point-mass U-maze."""
-import multiprocessing
-import os
 import re
-import sys
-from concurrent.futures import ProcessPoolExecutor
 
 import jax
 import jax.numpy as jnp
@@ -15,7 +11,8 @@ import dscpp_jax
 from dscpp_jax import acting as A
 from dscpp_jax import trainer as T
 from dscpp_jax.config import Config, preset
-from tests.trainer_fixtures import assert_trees_equal, tiny
+from tests.trainer_fixtures import (assert_trees_equal, background_jobs, tiny,
+                                    worker_on_spare_cores)
 
 
 def test_invalid_configs_fail_before_compiling():
@@ -354,15 +351,19 @@ def test_every_algorithm_trains_and_evaluates(algo, subgoal):
         assert np.all(np.asarray(res.option)[np.asarray(res.active)] == 0)   # global option only
 
 
+# a tiny MB-DSC++ on the ant U-maze (MJX, 2 envs x 3 steps): the NaN-physics and fallen-ant
+# tests share its train_step program (an ant compile costs more than both tests' steps)
+ANT_TINY = dict(num_envs=2, steps_per_iter=3, warmup_episodes=0, ant_integrator="Euler",
+                episode_length=50, max_options=4, max_pos_traj=4, max_neg=4, buffer_len=10,
+                option_timeout=20, td3_hidden=16, td3_batch_size=8, replay_capacity=100,
+                model_capacity=100, dyn_hidden=16, dyn_batch_size=8, dyn_pretrain_steps=1,
+                mpc_samples=8, mpc_horizon=2, mpc_dtype="float32", eval_every=0,
+                inband_eval_envs=0)
+
+
 def test_nan_physics_ends_that_episode_and_stays_out_of_learning():
     # ant U-maze (MJX, few steps): one environment's physics state is corrupted with NaN
-    cfg = preset("fast", "u_maze", "mb_dscpp", num_envs=2, steps_per_iter=3, warmup_episodes=0,
-                 ant_integrator="Euler",
-                 episode_length=50, max_options=4, max_pos_traj=4, max_neg=4, buffer_len=10,
-                 option_timeout=20, td3_hidden=16, td3_batch_size=8, replay_capacity=100,
-                 model_capacity=100, dyn_hidden=16, dyn_batch_size=8, dyn_pretrain_steps=1,
-                 mpc_samples=8, mpc_horizon=2, mpc_dtype="float32", eval_every=0,
-                 inband_eval_envs=0)
+    cfg = preset("fast", "u_maze", "mb_dscpp", **ANT_TINY)
     s = T.init(jax.random.PRNGKey(0), cfg)
     d = s.env_state.pipeline_state
     bad = s.replace(env_state=s.env_state.replace(
@@ -468,35 +469,12 @@ _JOBS = {   # test (node name) -> (function, arguments); the longest first
 }
 
 
-def _worker_setup(path):
-    """The worker leaves one core to this process (XLA's CPU runtime would take them all: on two
-    cores the tests here would wait for it), and writes its stdout and stderr to a file (JAX's
-    and the ant's warnings)."""
-    cores = sorted(os.sched_getaffinity(0))
-    if len(cores) > 1:
-        for thread in os.listdir("/proc/self/task"):   # those started so far; later ones inherit
-            os.sched_setaffinity(int(thread), cores[1:])
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND)
-    os.dup2(fd, 1)
-    os.dup2(fd, 2)
-
-
 @pytest.fixture(scope="module", autouse=True)
 def background(request, tmp_path_factory):
-    """Starts the jobs of the selected tests in one worker process (spawned: a fresh JAX) before
-    the first test of this module runs; {test name: future}."""
-    here = sys.modules[__name__]
-    jobs = [n for n in _JOBS if any(getattr(item, "module", None) is here and item.name == n
-                                    for item in request.session.items)]
-    if not jobs:
-        yield {}
-        return
-    log = str(tmp_path_factory.mktemp("background") / "worker.log")
-    pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"),
-                               initializer=_worker_setup, initargs=(log,))
-    futures = {n: pool.submit(_JOBS[n][0], *_JOBS[n][1]) for n in jobs}
-    yield futures
-    pool.shutdown(wait=True, cancel_futures=True)
+    """Starts the jobs of the selected tests in one worker process beside this one before the
+    first test of this module runs; {test name: future}."""
+    yield from background_jobs(request, tmp_path_factory, _JOBS, workers=1,
+                               setup=worker_on_spare_cores)
 
 
 def _result(background, request):
@@ -539,11 +517,7 @@ def test_task_start_prob_outside_0_1_is_refused():
 def test_on_back_share_counts_the_steps_of_a_fallen_ant():
     # ant U-maze (MJX, few steps): environment 0 starts on its back and stays there, as in the
     # paper (a fall does not end the episode); train/on_back_share counts its steps
-    cfg = preset("fast", "u_maze", "mf_dscpp", num_envs=2, steps_per_iter=3, warmup_episodes=0,
-                 ant_integrator="Euler",
-                 episode_length=50, max_options=4, max_pos_traj=4, max_neg=4, buffer_len=10,
-                 option_timeout=20, td3_hidden=16, td3_batch_size=8, replay_capacity=100,
-                 eval_every=0, inband_eval_envs=0)
+    cfg = preset("fast", "u_maze", "mb_dscpp", **ANT_TINY)   # compiled by the NaN test above
     s = T.init(jax.random.PRNGKey(0), cfg)
     env = T.make_env(cfg)
     d = s.env_state.pipeline_state
