@@ -89,7 +89,7 @@ def test_reproduce_trains_draws_reports_then_skips(tmp_path, capsys, monkeypatch
     assert {r["algo"] for r in a1} == {"dsc", "mf_dscpp"}
     assert len({r["checkpoint"] for r in a1 if r["algo"] == "dsc"}) >= 3   # kept over training
     a1_cfg = json.load(open(os.path.join(runs, "point_ant_reacher-dsc-g0-1", "group.json")))
-    assert a1_cfg["config"]["checkpoint_every"] == 3   # --a1-every, not --set's 2
+    assert a1_cfg["config"]["run"]["checkpoint_every"] == 3   # --a1-every, not --set's 2
     a2 = _rows(os.path.join(out, "figA2.csv"))
     assert {(r["algo"], r["critic"]) for r in a2} == {("mf_dscpp", "shared"),
                                                       ("mf_dscpp", "per_option")}
@@ -629,7 +629,7 @@ def test_figures_compare_at_the_papers_rule_and_show_dscpp_beyond_it_beside():
         cfg = preset("fast", e.env, e.algo, **reproduce._overrides(reproduce._sets(e, args)))
         assert cfg.frontier_on == e.beyond, e
         if e.env == "medium" and not e.beyond:
-            assert (cfg.her_strategy, cfg.her_relabel_prob) == ("final", 0.5), e
+            assert (cfg.td3.her_strategy, cfg.td3.her_relabel_prob) == ("final", 0.5), e
     # on the point-mass twins nothing is beyond the paper: the preset's own groups
     args.env_map = {m: "point_" + m for m in reproduce.MAZES}
     plan = reproduce.plan(_ns(args, fig="6"))
@@ -680,25 +680,25 @@ def test_medium_model_free_learners_share_one_td3_configuration():
     penalty of 2), DSC++'s chains 32 rows; the paper's baselines, the model-based learners and
     the other mazes keep the ant preset's."""
     from dscpp_jax.config import MEDIUM_MODEL_FREE_TD3, MODEL_BASED_ALGOS, preset
-    td3 = lambda c: (c.her_strategy, c.her_relabel_prob, c.td3_action_l2, c.td3_updates_per_step,
-                     c.td3_batch_size, c.td3_lr, c.td3_dtype)
+    td3 = lambda c: (c.td3.her_strategy, c.td3.her_relabel_prob, c.td3.action_l2, c.td3.updates_per_step,
+                     c.td3.batch_size, c.td3.lr, c.td3.dtype)
     free = [preset("fast", "medium", a) for a in ("mf_dscpp", "td3_her")]
     assert len({td3(c) for c in free}) == 1
     assert td3(free[0])[:3] == ("future", 0.8, 2.0) == tuple(MEDIUM_MODEL_FREE_TD3[k] for k in (
         "her_strategy", "her_relabel_prob", "td3_action_l2"))
-    assert [c.max_options for c in free] == [32, 24]
+    assert [c.chain.max_options for c in free] == [32, 24]
     for a in ("dsc", "dual"):          # the paper's baselines: nothing beyond the paper
         c = preset("fast", "medium", a)
-        assert td3(c)[:3] == ("final", 0.5, 0.0) and c.max_options == 24
+        assert td3(c)[:3] == ("final", 0.5, 0.0) and c.chain.max_options == 24
     for a in MODEL_BASED_ALGOS:
         c = preset("fast", "medium", a)
-        assert (c.her_strategy, c.td3_action_l2) == ("final", 0.0)
-    assert preset("fast", "medium", "mb_dscpp").max_options == 32
+        assert (c.td3.her_strategy, c.td3.action_l2) == ("final", 0.0)
+    assert preset("fast", "medium", "mb_dscpp").chain.max_options == 32
     for env in ("u_maze", "four_rooms", "large", "point_medium"):
         c = preset("fast", env, "mf_dscpp")
-        assert c.her_strategy == "final" and c.td3_action_l2 != 2.0
+        assert c.td3.her_strategy == "final" and c.td3.action_l2 != 2.0
     # a user's --set still wins
-    assert preset("fast", "medium", "mf_dscpp", her_strategy="final").her_strategy == "final"
+    assert preset("fast", "medium", "mf_dscpp", her_strategy="final").td3.her_strategy == "final"
 
 
 def test_readme_lists_groups_made_with_other_settings(tmp_path):
