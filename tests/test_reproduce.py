@@ -3,7 +3,6 @@ with one critic per option for appendix Figure 2), two seeds, a few iterations e
 that has runs is drawn with its CSV, the README checks each claim, and a second call trains nothing
 (finished groups are skipped)."""
 import csv
-import dataclasses
 import hashlib
 import json
 import os
@@ -16,8 +15,14 @@ import pytest
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.join(ROOT, "experiments"))
 import reproduce  # noqa: E402
+from dscpp_jax.config import flat_config  # noqa: E402
 
 sys.path.pop(0)
+
+
+def _flat(cfg):
+    """A config as runs saved it before the sections: flat."""
+    return cfg.flat()
 
 TINY = ["num_envs=4", "steps_per_iter=20", "episode_length=100", "warmup_episodes=2",
         "max_options=4", "max_pos_traj=8", "max_neg=8", "buffer_len=10", "option_timeout=40",
@@ -71,6 +76,7 @@ def test_reproduce_trains_draws_reports_then_skips(tmp_path, capsys, monkeypatch
     assert "point_u_maze-mf_dscpp-g0-1-optcritic: started" in text
     opt = json.load(open(os.path.join(runs, "point_u_maze-mf_dscpp-g0-1-optcritic",
                                       "group.json")))["config"]
+    opt = flat_config(opt)
     assert opt["shared_critic"] is False and opt["algo"] == "mf_dscpp"
     for fig in ("fig4", "fig5", "fig6", "figA1", "figA2", "figA3"):
         assert os.path.getsize(os.path.join(out, fig + ".png")) > 1000, fig
@@ -512,7 +518,7 @@ def test_driver_trains_td3_in_float32_and_older_groups_still_match(tmp_path):
     cmd = " ".join(reproduce.train_command(exp, str(tmp_path / "g"), args, resume=False))
     assert "--set td3_dtype=float32" in cmd
     from dscpp_jax.config import preset
-    cfg = dataclasses.asdict(preset("fast", "four_rooms", "mf_dscpp"))
+    cfg = _flat(preset("fast", "four_rooms", "mf_dscpp"))
     assert cfg["td3_dtype"] == "bfloat16"   # what the preset alone would give
     gdir = tmp_path / "grp"
     gdir.mkdir()
@@ -535,7 +541,7 @@ def test_driver_trains_td3_in_float32_and_older_groups_still_match(tmp_path):
     assert "--set mpc_samples=4096" in " ".join(
         reproduce.train_command(u, str(tmp_path / "g"), args, resume=False))
     assert "mpc_samples" not in cmd
-    ucfg = dataclasses.asdict(preset("fast", "u_maze", "mb_dscpp"))
+    ucfg = _flat(preset("fast", "u_maze", "mb_dscpp"))
     (gdir / "group.json").write_text(json.dumps({"seeds": [0], "config": ucfg}))
     assert reproduce.config_mismatch(str(gdir), u, args) == ["mpc_samples=2048 (asked: 4096)"]
     args.env_map = {"u_maze": "point_u_maze"}     # the point twin keeps its own preset
@@ -559,7 +565,7 @@ def test_a_group_made_before_a_preset_change_is_a_mismatch(tmp_path):
         (gdir / "group.json").write_text(json.dumps({"seeds": [0, 1], "config": config}))
         return reproduce.config_mismatch(str(gdir), exp, args)
 
-    now = dict(dataclasses.asdict(preset("fast", "medium", "mb_dscpp", td3_dtype="float32")),
+    now = dict(_flat(preset("fast", "medium", "mb_dscpp", td3_dtype="float32")),
                physics="warp", seed=1, total_episodes=1000, eval_every=5)
     assert mismatch(now) == []
     before = {k: v for k, v in now.items() if not k.startswith("frontier_")}
@@ -643,7 +649,7 @@ def test_print_commands_lists_the_groups_to_train(tmp_path, capsys):
     from dscpp_jax.config import preset
     from dscpp_jax.run_logging import RunLogger
     runs = tmp_path / "runs"
-    made = dataclasses.asdict(preset("fast", "four_rooms", "mb_dscpp", td3_dtype="float32",
+    made = _flat(preset("fast", "four_rooms", "mb_dscpp", td3_dtype="float32",
                                      frontier_start_prob=0.0, frontier_parent=False))
     g = runs / "four_rooms-mb_dscpp-g0-4"
     g.mkdir(parents=True)
@@ -710,10 +716,10 @@ def test_readme_lists_groups_made_with_other_settings(tmp_path):
     args.env_map = {}
     old, new = (reproduce.Exp("medium", a, 2001, "0-4") for a in ("td3_her", "mb_dscpp"))
     info = {}
-    for exp, cfg in ((old, dict(dataclasses.asdict(preset("fast", "medium", "td3_her",
+    for exp, cfg in ((old, dict(_flat(preset("fast", "medium", "td3_her",
                                                           td3_dtype="float32")),
                                 her_strategy="final", td3_action_l2=1.0)),
-                     (new, dataclasses.asdict(preset("fast", "medium", "mb_dscpp", td3_dtype="float32")))):
+                     (new, _flat(preset("fast", "medium", "mb_dscpp", td3_dtype="float32")))):
         gdir = tmp_path / exp.name({})
         gdir.mkdir()
         (gdir / "group.json").write_text(json.dumps({"seeds": [0], "config": cfg}))
@@ -732,7 +738,7 @@ def test_a_figure_takes_its_seeds_from_a_larger_group(tmp_path, capsys):
     larger group with nothing to resume does not take the asked seeds' training."""
     from dscpp_jax.config import preset
     from dscpp_jax.run_logging import RunLogger
-    cfg = dataclasses.asdict(preset("fast", "point_u_maze", "dsc", td3_dtype="float32"))
+    cfg = _flat(preset("fast", "point_u_maze", "dsc", td3_dtype="float32"))
     runs = tmp_path / "runs"
     args = reproduce.build_parser().parse_args(
         ["--runs-root", str(runs), "--out", str(tmp_path / "out"), "--seeds", "0-1",
