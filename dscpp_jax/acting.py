@@ -16,10 +16,8 @@ Training explores (Gaussian actor noise and random actions, or random actions ar
 evaluation acts deterministically and records nothing. Every function is pure and shape-stable;
 the run's `Config` is a static argument, the env an object whose constants are closed over.
 
-Also here: the learners' configs as the run config sets them (`td3_config`, `dyn_config`,
-`mpc_config`), which acting and learning both use; the value function V(s | g) of the shared (or
-an option's) critic that MPC and the DP subgoals query; and the seed-group predicates
-(`any_seed`, `all_seeds`) that keep work off runs of a vmapped seed group that do not need it.
+Also here: the value function V(s | g) of the shared (or an option's) critic that MPC and the DP
+subgoals query; and the seed-group predicates (`any_seed`, `all_seeds`) that keep work off runs of a vmapped seed group that do not need it.
 """
 from __future__ import annotations
 
@@ -75,48 +73,10 @@ def exec_init(config: Config, obs, goal) -> ExecState:
         opt_steps=jnp.zeros((B,), jnp.int32),
         start_xy=obs[:, :2],
         start_obs=obs,
-        traj=jnp.zeros((B, config.buffer_len, 2), jnp.float32),
+        traj=jnp.zeros((B, config.chain.buffer_len, 2), jnp.float32),
         traj_count=jnp.zeros((B,), jnp.int32),
         seg_id=jnp.zeros((B,), jnp.int32),
     )
-
-
-# ------------------------------------------------------------------------------------------------
-# The learners' configs, as the run config sets them
-# ------------------------------------------------------------------------------------------------
-def td3_config(config: Config) -> TD3Config:
-    """The TD3 (+ HER) learner of `config`: the option policies and the value function V(s | g)."""
-    base = TD3Config.model_based if config.model_based else TD3Config.model_free
-    kw = dict(batch_size=config.td3_batch_size, hidden=(config.td3_hidden, config.td3_hidden),
-              discount=config.discount, exploration_noise=config.action_noise,
-              replay_capacity=config.replay_capacity,
-              actor_lr=config.effective_td3_lr, critic_lr=config.effective_td3_lr,
-              action_l2=config.td3_action_l2, compute_dtype=config.td3_dtype)
-    if config.td3_clip_targets:   # the value range under the 0 / -1 reward
-        kw.update(target_range=(-1.0 / (1.0 - config.discount), 0.0))
-    if config.random_action_prob >= 0:
-        kw.update(random_action_prob=config.random_action_prob)
-        if config.model_based:
-            kw.update(random_action_prob_start=config.random_action_prob)
-    if not config.model_based:
-        kw.update(random_action_prob_start=config.mf_initial_random_prob,
-                  random_action_switch_successes=config.mf_random_decay_successes)
-    return base(**kw)
-
-
-def dyn_config(config: Config) -> DynamicsConfig:
-    """The learned dynamics model f_xi of `config` (model-based algorithms)."""
-    return DynamicsConfig(ensemble_size=config.dyn_ensemble,
-                          hidden=(config.dyn_hidden, config.dyn_hidden), lr=config.dyn_lr,
-                          batch_size=config.dyn_batch_size)
-
-
-def mpc_config(config: Config) -> MPCConfig:
-    """Random-shooting MPC over the learned model (eq. 2; eq. 1 without the value term)."""
-    return MPCConfig(num_samples=config.mpc_samples, horizon=config.mpc_horizon,
-                     discount=config.mpc_discount, goal_tolerance=config.goal_tolerance,
-                     use_value=config.uses_value_in_mpc, compute_dtype=config.mpc_dtype,
-                     backend=config.mpc_backend)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -143,7 +103,7 @@ def value_fn(config: Config, td3, option=None):
     """value_fn(obs (..., obs_dim), goal (2,) or (..., 2)) -> (...): V(s | g) of the shared TD3, or
     with one TD3 per option (`config.per_option_td3`) of option `option`'s (a scalar, traced or
     not); a region policy's value ignores `goal` (its networks see the observation alone)."""
-    tcfg = td3_config(config)
+    tcfg = TD3Config.from_section(config.td3, config.model_based)
     if config.per_option_td3:
         if option is None:
             raise ValueError("per-option critics (shared_critic=False, dsc, dual): the value "
@@ -166,13 +126,14 @@ def policy_goals(config: Config, goals):
 
 def value_net(config: Config, td3):
     """The shared TD3's actor and critic as MPC's fused terminal value (`mpc.td3_value_net`)."""
-    return td3_value_net(td3_config(config), td3)
+    return td3_value_net(TD3Config.from_section(config.td3, config.model_based), td3)
 
 
 def mpc_actions(config: Config, dyn, key, obs, goals, value_fn, value_net=None):
-    """(B, act): the first action of the cheapest of `config.mpc_samples` random sequences
+    """(B, act): the first action of the cheapest of `config.mpc.samples` random sequences
     under eq. 2's cost (`mpc.mpc_actions`)."""
-    return _mpc_shooting(mpc_config(config), dyn_config(config), dyn, key, obs, goals,
+    mpc = MPCConfig.from_section(config.mpc, config.task.goal_tolerance, config.uses_value_in_mpc)
+    return _mpc_shooting(mpc, DynamicsConfig.from_section(config.dynamics), dyn, key, obs, goals,
                          value_fn=value_fn, value_net=value_net)
 
 
@@ -206,7 +167,7 @@ def choose_options(config: Config, env, chain, dp_table, td3, ex: ExecState, obs
     """Start an option (and pick its subgoal) in every env whose `ex.option` is NO_OPTION
     (Algorithm 2, lines 4-5); flat algorithms run the global option towards the task goal.
     `active` (B,): only those envs start one. `evaluation`: the policy over options prefers
-    pessimistic regions when `config.eval_prefer_pessimistic` is set."""
+    pessimistic regions when `config.eval.prefer_pessimistic` is set."""
     B = obs.shape[0]
     xy = obs[:, :2]
     goal = jnp.asarray(env.goal, jnp.float32)
@@ -215,7 +176,7 @@ def choose_options(config: Config, env, chain, dp_table, td3, ex: ExecState, obs
         need = need & active
     if config.hierarchical:
         keys = jax.random.split(key, B)
-        pessimistic_first = evaluation and config.eval_prefer_pessimistic
+        pessimistic_first = evaluation and config.eval.prefer_pessimistic
         new_opt = select_options(config, chain, xy, pessimistic_first)              # (B,)
         sub = pick_subgoals(config, chain, dp_table, td3, new_opt, obs, keys)     # (B, 2)
     else:
@@ -240,7 +201,7 @@ def policy_actions(config: Config, td3, dyn, obs, goals, key, explore: bool, ran
     each env acts with its option's actor (NO_OPTION, an env that runs none, with the global
     option's). `rand_prob`: a scalar or one probability per env (B,)."""
     B = obs.shape[0]
-    tcfg = td3_config(config)
+    tcfg = TD3Config.from_section(config.td3, config.model_based)
     if config.per_option_td3:
         if config.model_based or options is None:
             raise ValueError("per-option actors (shared_critic=False, dsc, dual) act for "
@@ -278,9 +239,9 @@ def random_action_probs(config: Config, chain, options, run_successes) -> jax.Ar
     schedule of `td3.td3_random_prob` on `run_successes`."""
     if config.exploration_per_option:
         own = chain.successes[jnp.clip(options, 0)]
-        return jnp.where(own <= config.mf_random_decay_successes, config.mf_initial_random_prob,
-                         config.effective_random_prob).astype(jnp.float32)
-    return td3_random_prob(td3_config(config), run_successes)
+        return jnp.where(own <= config.td3.mf_random_decay_successes,
+                         config.td3.mf_initial_random_prob, config.effective_random_prob).astype(jnp.float32)
+    return td3_random_prob(TD3Config.from_section(config.td3, config.model_based), run_successes)
 
 
 def push_traj(ex: ExecState, xy) -> ExecState:
@@ -306,14 +267,14 @@ def option_end(config: Config, env, chain, ex: ExecState, next_xy, done):
     after `config.effective_global_option_timeout` steps, the others after `option_timeout`.
     Call after `push_traj`. Returns (ended, success), (B,) bool each."""
     running = ex.option != NO_OPTION
-    near = jnp.linalg.norm(next_xy - ex.subgoal, axis=-1) <= config.goal_tolerance
+    near = jnp.linalg.norm(next_xy - ex.subgoal, axis=-1) <= config.task.goal_tolerance
     if config.hierarchical:
         goal = jnp.asarray(env.goal, jnp.float32)
         term = options_terminate(config, chain, ex.option, next_xy, goal)
         success = running & term if config.option_policies == "region" else running & term & near
         # `ex.opt_steps` counts the steps already taken (the caller has pushed this step)
-        timeout = ex.opt_steps >= config.option_timeout
-        if config.effective_global_option_timeout != config.option_timeout:
+        timeout = ex.opt_steps >= config.chain.option_timeout
+        if config.effective_global_option_timeout != config.chain.option_timeout:
             timeout = jnp.where(ex.option == GLOBAL_OPTION,
                                 ex.opt_steps >= config.effective_global_option_timeout, timeout)
     else:
@@ -345,14 +306,14 @@ def chain_metrics(config: Config, chain, start_xy=None) -> Dict[str, jax.Array]:
 # ------------------------------------------------------------------------------------------------
 def frontier_candidates(config: Config, env, key):
     """(M, 2) candidate states for the frontier probe: the env's diverse-start sampler."""
-    return jax.vmap(env.sample_start)(jax.random.split(key, config.frontier_candidates))
+    return jax.vmap(env.sample_start)(jax.random.split(key, config.frontier.candidates))
 
 
 def frontier_pool(config: Config, env, chain, key):
     """(candidates (M, 2), pool (M,) bool): where this iteration's frontier starts come from."""
     cand = frontier_candidates(config, env, key)
     return cand, frontier.start_pool(chain, frontier.frontier_probe(
-        chain, cand, config.frontier_radius, config.frontier_inner_radius))
+        chain, cand, config.frontier.radius, config.frontier.inner_radius))
 
 
 def diverse_starts(config: Config, env, k_start, B: int, front=None):
@@ -364,8 +325,8 @@ def diverse_starts(config: Config, env, k_start, B: int, front=None):
     if front is None:
         return starts
     u = jax.random.uniform(jax.random.fold_in(k_start, 1), (B,))
-    at_front = ((u >= config.task_start_prob)
-                & (u < config.task_start_prob + config.frontier_start_prob))
+    at_front = ((u >= config.task.start_prob)
+                & (u < config.task.start_prob + config.frontier.start_prob))
     cand, pool = front
     pick = jax.random.uniform(jax.random.fold_in(k_start, 2), (B,) + pool.shape)
     pick = jnp.argmax(jnp.where(pool[None, :], pick, -1.0), axis=1)
@@ -377,7 +338,7 @@ def diverse_starts(config: Config, env, k_start, B: int, front=None):
 # ------------------------------------------------------------------------------------------------
 @flax.struct.dataclass
 class InbandState:
-    """In-band evaluation (`Config.inband_eval_envs` = E > 0): E envs that run evaluation episodes
+    """In-band evaluation (`Config.eval.inband_envs` = E > 0): E envs that run evaluation episodes
     from the task start inside `train_step`, and the outcomes of the last K finished ones
     (K = `Config.inband_window`, a ring written in order of finishing)."""
 
@@ -414,7 +375,7 @@ def inband_record(config: Config, env, chain, ib: InbandState, ex: ExecState, ne
                   seed_axis=None) -> InbandState:
     """After the in-band envs stepped to `nes`: end their options as evaluation does, write the
     outcomes of finished episodes into the ring, restart those envs at the task start."""
-    E, K = config.inband_eval_envs, config.inband_window
+    E, K = config.eval.inband_envs, config.inband_window
     ex = push_traj(ex, nes.obs[:, :2])
     done = nes.done > 0
     ended, _ = option_end(config, env, chain, ex, nes.obs[:, :2], nes.done)
@@ -458,7 +419,7 @@ def inband_metrics(config: Config, ib: InbandState) -> Dict[str, jax.Array]:
         "inband/success_rate": f(jnp.where(n > 0, n_succ / jnp.maximum(n, 1), 0.0)),
         "inband/steps_to_goal": f(jnp.where(
             n_succ > 0, jnp.sum(jnp.where(succ, ib.steps, 0)) / jnp.maximum(n_succ, 1),
-            config.episode_length)),
+            config.task.episode_length)),
         "inband/episodes": f(ib.episodes),
         "inband/window": f(n),
     }

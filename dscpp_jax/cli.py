@@ -23,7 +23,7 @@ import numpy as np
 
 from dscpp_jax import compare, diagnose, envs, group_train, plots, video
 from dscpp_jax import seed_group as SG
-from dscpp_jax.config import ALGOS, PRESETS, SUBGOALS, Config, parse_value, preset
+from dscpp_jax.config import ALGOS, PRESETS, SUBGOALS, Config, flat_name, parse_value, preset
 from dscpp_jax.envs import ant_maze
 from dscpp_jax.evaluate import evaluate
 from dscpp_jax.host_loop import (TrainingDiverged, final_evaluation, notes_beyond_paper,
@@ -40,14 +40,16 @@ from dscpp_jax.trainer import resolve_physics
 # Config from arguments
 # ------------------------------------------------------------------------------------------------
 def parse_overrides(pairs: list[str]) -> dict[str, Any]:
-    """`--set name=value` items as {field: value}, each value parsed as the field's type."""
+    """`--set name=value` items (a field by its flat or its `section.field` name) as {flat name:
+    value}, each value parsed as the field's type."""
     out: dict[str, Any] = {}
     for p in pairs or []:
         if "=" not in p:
             raise ValueError(f"--set expects name=value, got {p!r}")
         k, v = p.split("=", 1)
         k = k.strip().replace("-", "_")
-        out[k] = parse_value(k, v.strip())
+        value = parse_value(k, v.strip())
+        out[flat_name(k)] = value
     return out
 
 
@@ -61,7 +63,7 @@ FLAG_FIELDS = (("num_envs", "--num-envs"), ("steps_per_iter", "--steps-per-iter"
 """Config fields that `train` has a flag of its own for (field, flag)."""
 
 RESUME_APPLIED = ("total_env_steps", "total_episodes", "eval_every", "eval_episodes",
-                  "checkpoint_every", "keep_checkpoints", "log_every")
+                  "checkpoint_every", "keep_checkpoints")
 """Config fields a --resume may change (the schedule and the host's cadences); they are
 recorded in config.json. Every other field is fixed by the checkpoint."""
 
@@ -122,7 +124,7 @@ def resume_changes(args, saved: Config, group: bool = False) -> dict:
         if group and k == "seed":
             problems.append(f"{how} (a seed group continues its own seeds)")
             continue
-        current = getattr(saved, k, None)
+        current = saved.get(k)
         if v != current:
             problems.append(f"{how} (the run has {k}={current})")
     if problems:
@@ -130,7 +132,7 @@ def resume_changes(args, saved: Config, group: bool = False) -> dict:
             f"--resume cannot change {'; '.join(problems)}. The checkpoint fixes the state's "
             f"shapes and the algorithm; on resume only these may change: --total-steps, "
             f"--total-episodes, --eval-every, --eval-episodes, --checkpoint-every, --set "
-            f"keep_checkpoints=N, --set log_every=N. Start a new run for anything else")
+            f"keep_checkpoints=N. Start a new run for anything else")
     return changes
 
 

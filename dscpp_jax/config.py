@@ -1,9 +1,14 @@
-"""The run configuration: one frozen, hashable dataclass with the paper's constants as defaults,
-and the presets, a table of field overrides per environment family and learner.
+"""The run configuration: one frozen, hashable dataclass of component sections with the paper's
+constants as defaults, and the presets, a table of field overrides per environment family and
+learner.
 
-`Config` holds every static size and hyperparameter of a run, each field documented where it is
-declared. It is hashable so that it can be a static argument of `jax.jit`; it is never mutated
-(use `dataclasses.replace` or `Config.override`). Constructing one checks every field's type;
+`Config` holds every static size and hyperparameter of a run: what the run is (env, algo, subgoal,
+preset) and one frozen section per component (`task`, `run`, `td3`, `dynamics`, `mpc`, `chain`,
+`frontier`, `eval`; e.g. `cfg.td3.lr`, `cfg.mpc.samples`), each field documented where it is
+declared. Every field also has a flat name (`td3_lr`, `mpc_samples`; the table `FLAT_NAMES`),
+which `--set`, `preset`, `Config(...)` and `Config.override` take as they take `section.field`.
+It is hashable so that it can be a static argument of `jax.jit`; it is never mutated
+(use `Config.override`). Constructing one checks every field's type;
 `Config.override` and `Config.validate()` also check the value of each field with a fixed set
 of values (`CHOICES`), and `validate()`, which runs before anything is compiled, checks the
 settings against each other. Each raises a `ValueError` that names the field and says
@@ -25,6 +30,7 @@ Why each preset value was chosen, with the study behind it: docs/presets.md.
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import json
 import numbers
 from dataclasses import dataclass
@@ -75,43 +81,51 @@ RETIRED_FIELDS: dict[str, Any] = dict(
     td3_upright_weight=0.0, td3_upright_min=0.5, td3_absorb_fallen=False,
     mpc_upright_weight=0.0, mpc_upright_min=0.5, gestation_patience=0,
     frontier_metric="euclidean", frontier_stall=0, svc_bound=0.0, frontier_anchor=0.0,
-    warmup_episode_length=0, fall_is_terminal=False, frontier_task_start=False)
+    warmup_episode_length=0, fall_is_terminal=False, frontier_task_start=False, log_every=1)
 # Fields only the host driver reads (the TrainState carries `Config.device_view()`).
 HOST_ONLY_DEFAULTS = dict(seed=0, total_env_steps=1, total_episodes=0, eval_every=0,
-                          log_every=1, checkpoint_every=0, keep_checkpoints=1, preset="paper")
+                          checkpoint_every=0, keep_checkpoints=1, preset="paper")
 
 
 # Values of fields that a saved config may lack because it predates them: what those runs used.
 LEGACY_DEFAULTS = dict(physics="jax")
 
 
+
 @dataclass(frozen=True)
-class Config:
-    """Everything static about a training run (sizes, schedule, hyperparameters).
+class TaskSection:
+    """The environment's physics and episodes: their length, the warm-up, the goal
+    tolerance and where training episodes start."""
 
-    Units: env steps are steps of one environment unless a field says "all environments
-    together"; distances are in the maze's x-y units (the ant's and the point mass's positions);
-    cadences count `train_step` calls."""
-
-    # --- task and algorithm -------------------------------------------------------------------
-    env: str = "point_u_maze"
-    """environment name for `envs.make`: an ant maze (one of MAZES) or its point-mass twin
-    (point_ + the maze)"""
     ant_integrator: str = "Euler"
     """MuJoCo integrator of the ant: Euler (fast), RK4 (D4RL's) or implicitfast"""
     physics: str = "auto"
     """ant physics back end: jax (MJX), warp (MuJoCo Warp) or auto (warp on a GPU with warp-lang
     installed, else jax)"""
-    group_size: int = 1
-    """seeds trained together in one program (a seed group)"""
-    algo: str = "mb_dscpp"
-    """the learner, one of ALGOS"""
-    subgoal: str = "robust"
-    """how a subgoal is chosen in the target option's initiation region: robust or dp"""
+    episode_length: int = 1000
+    """env steps per episode"""
+    warmup_episodes: int = 50
+    """uniform-random episodes from the task start before learning"""
+    goal_tolerance: float = 0.6
+    """radius of the task's goal region and of a subgoal's region (distance)"""
+    diverse_starts: bool = True
+    """training episodes after warm-up start anywhere free (False: at the task start)"""
+    start_prob: float = 0.0
+    """with diverse starts: the share of training episodes after warm-up that start at the task
+    start instead (a probability)"""
+
+    def __post_init__(self):
+        _check_section(self)
+
+
+@dataclass(frozen=True)
+class RunSection:
+    """The run's seed, batching, schedule and checkpoints."""
+
     seed: int = 0
     """the run's random seed (>= 0)"""
-
-    # --- batching -----------------------------------------------------------------------------
+    group_size: int = 1
+    """seeds trained together in one program (a seed group)"""
     num_envs: int = 1
     """B: parallel training environments"""
     steps_per_iter: int = 1000
@@ -120,74 +134,38 @@ class Config:
     """stop after this many env steps (all environments together)"""
     total_episodes: int = 0
     """also stop once this many episodes have finished (0: no limit)"""
+    checkpoint_every: int = 20
+    """train_step calls between checkpoints (0: only at exit)"""
+    keep_checkpoints: int = 2
+    """checkpoints kept in the run directory (the newest)"""
 
-    # --- episodes and options (paper constants) ----------------------------------------------
-    episode_length: int = 1000
-    """env steps per episode"""
-    warmup_episodes: int = 50
-    """uniform-random episodes from the task start before learning"""
-    goal_tolerance: float = 0.6
-    """radius of the task's goal region and of a subgoal's region (distance)"""
-    gestation: int = 10
-    """successful executions before a new option is mature"""
-    buffer_len: int = 50
-    """positions kept after the start state of a successful execution (env steps)"""
-    option_timeout: int = 200
-    """env steps before an option's execution counts as a failure"""
-    max_options: int = 12
-    """capacity of the option table: the global option, the goal option and the chain's links"""
-    max_pos_traj: int = 100
-    """successful trajectories kept per option (a ring)"""
-    max_neg: int = 100
-    """failed start states kept per option (a ring)"""
-    svm_gamma: float = 0.5
-    """RBF kernel coefficient of the initiation classifiers (1 / distance squared)"""
-    diverse_starts: bool = True
-    """training episodes after warm-up start anywhere free (False: at the task start)"""
-    task_start_prob: float = 0.0
-    """with diverse starts: the share of training episodes after warm-up that start at the task
-    start instead (a probability)"""
-    # The chain's frontier (beyond the paper; dscpp_jax.frontier): uncovered free space within
-    # frontier_radius of an option's examples, estimated from frontier_candidates diverse-start
-    # draws; a row's frontier is open with at least frontier_min_open of them.
-    frontier_start_prob: float = 0.0
-    """with diverse starts: the share of training episodes after warm-up that start on the
-    frontier of the option that the link in gestation targets (a probability; 0: off)"""
-    frontier_parent: bool = False
-    """a new option targets the newest mature option with an open frontier; a link in gestation
-    whose target's frontier closed (a filled dead end) is re-targeted there"""
-    frontier_radius: float = 5.0
-    """how far the frontier reaches from an option's examples (distance)"""
-    frontier_inner_radius: float = 0.0
-    """frontier starts keep at least this far from the target's examples (distance; 0: anywhere
-    on the frontier)"""
-    frontier_candidates: int = 512
-    """diverse-start draws the frontier is estimated from"""
-    frontier_min_open: int = 4
-    """draws on a row's frontier for it to count as open"""
-    eval_prefer_pessimistic: bool = True
-    """evaluation's policy over options tries pessimistic regions first (False: the paper's walk,
-    as in training)"""
+    def __post_init__(self):
+        _check_section(self)
 
-    # --- TD3 + HER ----------------------------------------------------------------------------
-    td3_hidden: int = 256
+
+@dataclass(frozen=True)
+class TD3Section:
+    """TD3 + HER (the option policies and the value function V(s | g)), their replay buffer
+    and exploration."""
+
+    hidden: int = 256
     """width of the hidden layers of TD3's actor and critics (units)"""
-    td3_batch_size: int = 100
+    batch_size: int = 100
     """transitions per TD3 minibatch"""
-    td3_updates_per_step: float = 1.0
+    updates_per_step: float = 1.0
     """TD3 gradient steps per stored env transition"""
-    td3_sample_block: int = 1
+    sample_block: int = 1
     """minibatches drawn per replay sampling call (1: one per gradient step; > 1: fewer, larger
     gathers, same math)"""
-    td3_lr: float = -1.0
+    lr: float = -1.0
     """Adam learning rate of TD3 (< 0: the learner's own, 1e-5 model based, 3e-4 model free)"""
-    td3_clip_targets: bool = False
+    clip_targets: bool = False
     """clip TD targets to [-1 / (1 - discount), 0], the range of every value under the 0 / -1
     reward (not in the original)"""
-    td3_action_l2: float = 0.0
+    action_l2: float = 0.0
     """weight of the actor's action penalty: actor loss + td3_action_l2 * mean(a^2) (OpenAI
     Baselines' HER: 1; 0: off, as in the original)"""
-    td3_dtype: str = "float32"
+    dtype: str = "float32"
     """matmul operands and activations of TD3's hidden layers: float32 or bfloat16 (the first and
     output layers, parameters, optimiser state, losses and targets stay float32)"""
     shared_critic: bool = True
@@ -212,6 +190,80 @@ class Config:
     """model free: the random-action probability until mf_random_decay_successes"""
     mf_random_decay_successes: int = 3
     """model free: successes after which random_action_prob replaces mf_initial_random_prob"""
+
+    def effective_lr(self, model_based: bool) -> float:
+        """The learning rate in effect: `lr`, or where it is < 0 the learner's own."""
+        return self.lr if self.lr > 0 else (1e-5 if model_based else 3e-4)
+
+    def __post_init__(self):
+        _check_section(self)
+
+
+@dataclass(frozen=True)
+class DynamicsSection:
+    """The learned dynamics model f_xi of the model-based algorithms."""
+
+    hidden: int = 500
+    """width of the dynamics model's hidden layers (units)"""
+    ensemble: int = 1
+    """members of the dynamics model's ensemble"""
+    batch_size: int = 1024
+    """transitions per dynamics-model minibatch"""
+    lr: float = 1e-3
+    """Adam learning rate of the dynamics model"""
+    updates_per_step: float = 0.25
+    """dynamics-model gradient steps per stored env transition"""
+    pretrain_steps: int = 2000
+    """dynamics-model gradient steps once the warm-up data is in"""
+    capacity: int = 300_000
+    """the dynamics model's transition buffer size (all environments together)"""
+
+    def __post_init__(self):
+        _check_section(self)
+
+
+@dataclass(frozen=True)
+class MPCSection:
+    """Random-shooting MPC over the learned model (eq. 2; eq. 1 without the value term)."""
+
+    samples: int = 14_000
+    """action sequences MPC samples per decision"""
+    horizon: int = 7
+    """env steps each sampled action sequence looks ahead"""
+    discount: float = 0.95
+    """discount per step of MPC's return (also of the DP subgoals' value table)"""
+    dtype: str = "float32"
+    """precision of MPC's rollouts: float32 or bfloat16"""
+    backend: str = "auto"
+    """MPC's kernel: xla, pallas (the fused kernel; bfloat16) or auto (pallas on a GPU with
+    bfloat16, else xla)"""
+
+    def __post_init__(self):
+        _check_section(self)
+
+
+@dataclass(frozen=True)
+class ChainSection:
+    """The skill chain: gestation, option executions, the example rings, the initiation
+    classifiers and how new options start."""
+
+    gestation: int = 10
+    """successful executions before a new option is mature"""
+    buffer_len: int = 50
+    """positions kept after the start state of a successful execution (env steps)"""
+    option_timeout: int = 200
+    """env steps before an option's execution counts as a failure"""
+    max_options: int = 12
+    """capacity of the option table: the global option, the goal option and the chain's links"""
+    max_pos_traj: int = 100
+    """successful trajectories kept per option (a ring)"""
+    max_neg: int = 100
+    """failed start states kept per option (a ring)"""
+    svm_gamma: float = 0.5
+    """RBF kernel coefficient of the initiation classifiers (1 / distance squared)"""
+    svm_backend: str = "auto"
+    """the classifiers' SMO solver: xla (a loop), pallas (the fused kernel) or auto (pallas on a
+    GPU, else xla)"""
     option_init: str = "copy_global"
     """one TD3 per option (`option_policies`): how a new option's networks start: copy_global (a
     copy of the global option's networks, target networks included, fresh optimiser state, at
@@ -223,67 +275,218 @@ class Config:
     """successes beyond gestation the newest mature option needs before the chain creates its
     child (< 0: the algorithm's: 2 for dsc and dual, as DSC's initiation period; 0 otherwise)"""
 
-    # --- dynamics model + MPC -------------------------------------------------------------------
-    dyn_hidden: int = 500
-    """width of the dynamics model's hidden layers (units)"""
-    dyn_ensemble: int = 1
-    """members of the dynamics model's ensemble"""
-    dyn_batch_size: int = 1024
-    """transitions per dynamics-model minibatch"""
-    dyn_lr: float = 1e-3
-    """Adam learning rate of the dynamics model"""
-    dyn_updates_per_step: float = 0.25
-    """dynamics-model gradient steps per stored env transition"""
-    dyn_pretrain_steps: int = 2000
-    """dynamics-model gradient steps once the warm-up data is in"""
-    model_capacity: int = 300_000
-    """the dynamics model's transition buffer size (all environments together)"""
-    mpc_samples: int = 14_000
-    """action sequences MPC samples per decision"""
-    mpc_horizon: int = 7
-    """env steps each sampled action sequence looks ahead"""
-    mpc_discount: float = 0.95
-    """discount per step of MPC's return (also of the DP subgoals' value table)"""
-    mpc_dtype: str = "float32"
-    """precision of MPC's rollouts: float32 or bfloat16"""
-    mpc_backend: str = "auto"
-    """MPC's kernel: xla, pallas (the fused kernel; bfloat16) or auto (pallas on a GPU with
-    bfloat16, else xla)"""
-    svm_backend: str = "auto"
-    """the classifiers' SMO solver: xla (a loop), pallas (the fused kernel) or auto (pallas on a
-    GPU, else xla)"""
+    def __post_init__(self):
+        _check_section(self)
 
-    # --- in-band evaluation (inside train_step) -------------------------------------------------
-    inband_eval_envs: int = 0
+
+@dataclass(frozen=True)
+class FrontierSection:
+    """The chain's frontier (beyond the paper; dscpp_jax.frontier): uncovered free space
+    within `radius` of an option's examples, estimated from `candidates` diverse-start draws; a
+    row's frontier is open with at least `min_open` of them."""
+
+    start_prob: float = 0.0
+    """with diverse starts: the share of training episodes after warm-up that start on the
+    frontier of the option that the link in gestation targets (a probability; 0: off)"""
+    parent: bool = False
+    """a new option targets the newest mature option with an open frontier; a link in gestation
+    whose target's frontier closed (a filled dead end) is re-targeted there"""
+    radius: float = 5.0
+    """how far the frontier reaches from an option's examples (distance)"""
+    inner_radius: float = 0.0
+    """frontier starts keep at least this far from the target's examples (distance; 0: anywhere
+    on the frontier)"""
+    candidates: int = 512
+    """diverse-start draws the frontier is estimated from"""
+    min_open: int = 4
+    """draws on a row's frontier for it to count as open"""
+
+    def __post_init__(self):
+        _check_section(self)
+
+
+@dataclass(frozen=True)
+class EvalSection:
+    """Evaluation: separate episodes between train_step calls (host side) and in-band
+    episodes inside train_step."""
+
+    every: int = 10
+    """train_step calls between evaluations (0: never)"""
+    episodes: int = 4
+    """episodes per evaluation"""
+    prefer_pessimistic: bool = True
+    """evaluation's policy over options tries pessimistic regions first (False: the paper's walk,
+    as in training)"""
+    inband_envs: int = 0
     """E: extra environments that run evaluation episodes from the task start in the same scan as
     the training environments, with the deterministic evaluation policy and nothing written to
     learning state (0: off; metrics inband/*)"""
-    inband_eval_window: int = 0
+    inband_window: int = 0
     """inband/success_rate averages the last K finished in-band episodes (0: K =
     inband_eval_envs)"""
-    inband_eval_batched: bool = True
+    inband_batched: bool = True
     """step the in-band environments in one physics batch with the training environments
     (B + E); False: a second physics step. MJX (JAX) ant physics may round a B + E batch
     differently, so training then matches a run without in-band environments only to rounding;
     False keeps it bitwise. Point mass and MuJoCo Warp: exact either way"""
 
-    # --- evaluation, logging, checkpoints (host side) -----------------------------------------
-    eval_every: int = 10
-    """train_step calls between evaluations (0: never)"""
-    eval_episodes: int = 4
-    """episodes per evaluation"""
-    log_every: int = 1
-    """unused, kept so that saved configs load (metrics are logged after every train_step
-    call)"""
-    checkpoint_every: int = 20
-    """train_step calls between checkpoints (0: only at exit)"""
-    keep_checkpoints: int = 2
-    """checkpoints kept in the run directory (the newest)"""
+    def __post_init__(self):
+        _check_section(self)
+
+
+SECTIONS: dict[str, type] = dict(task=TaskSection, run=RunSection, td3=TD3Section,
+                                 dynamics=DynamicsSection, mpc=MPCSection, chain=ChainSection,
+                                 frontier=FrontierSection, eval=EvalSection)
+"""Config's sections: attribute name -> section class."""
+TOP_FIELDS = ("env", "algo", "subgoal", "preset")
+"""Config's fields outside the sections: what the run is (env, learner, subgoals, preset)."""
+
+# The one table of input names: every field's flat name (the name it had before the sections,
+# still accepted by `--set`, `preset`, `Config(...)` and `Config.override`, and used in error
+# messages and saved flat configs) -> (section, field); None for the fields outside the sections.
+# `section.field` (e.g. `td3.lr`) is accepted wherever a flat name is. In the order of the flat
+# fields before the sections (`Config.flat`'s order).
+FLAT_NAMES: dict[str, tuple[str | None, str]] = {
+    "env": (None, "env"), "ant_integrator": ("task", "ant_integrator"),
+    "physics": ("task", "physics"), "group_size": ("run", "group_size"), "algo": (None, "algo"),
+    "subgoal": (None, "subgoal"), "seed": ("run", "seed"), "num_envs": ("run", "num_envs"),
+    "steps_per_iter": ("run", "steps_per_iter"), "total_env_steps": ("run", "total_env_steps"),
+    "total_episodes": ("run", "total_episodes"), "episode_length": ("task", "episode_length"),
+    "warmup_episodes": ("task", "warmup_episodes"), "goal_tolerance": ("task", "goal_tolerance"),
+    "gestation": ("chain", "gestation"), "buffer_len": ("chain", "buffer_len"),
+    "option_timeout": ("chain", "option_timeout"), "max_options": ("chain", "max_options"),
+    "max_pos_traj": ("chain", "max_pos_traj"), "max_neg": ("chain", "max_neg"),
+    "svm_gamma": ("chain", "svm_gamma"), "diverse_starts": ("task", "diverse_starts"),
+    "task_start_prob": ("task", "start_prob"), "frontier_start_prob": ("frontier", "start_prob"),
+    "frontier_parent": ("frontier", "parent"), "frontier_radius": ("frontier", "radius"),
+    "frontier_inner_radius": ("frontier", "inner_radius"),
+    "frontier_candidates": ("frontier", "candidates"),
+    "frontier_min_open": ("frontier", "min_open"),
+    "eval_prefer_pessimistic": ("eval", "prefer_pessimistic"), "td3_hidden": ("td3", "hidden"),
+    "td3_batch_size": ("td3", "batch_size"), "td3_updates_per_step": ("td3", "updates_per_step"),
+    "td3_sample_block": ("td3", "sample_block"), "td3_lr": ("td3", "lr"),
+    "td3_clip_targets": ("td3", "clip_targets"), "td3_action_l2": ("td3", "action_l2"),
+    "td3_dtype": ("td3", "dtype"), "shared_critic": ("td3", "shared_critic"),
+    "discount": ("td3", "discount"), "replay_capacity": ("td3", "replay_capacity"),
+    "her_strategy": ("td3", "her_strategy"), "her_relabel_prob": ("td3", "her_relabel_prob"),
+    "action_noise": ("td3", "action_noise"), "random_action_prob": ("td3", "random_action_prob"),
+    "mf_initial_random_prob": ("td3", "mf_initial_random_prob"),
+    "mf_random_decay_successes": ("td3", "mf_random_decay_successes"),
+    "option_init": ("chain", "option_init"),
+    "global_option_timeout": ("chain", "global_option_timeout"),
+    "initiation_period": ("chain", "initiation_period"), "dyn_hidden": ("dynamics", "hidden"),
+    "dyn_ensemble": ("dynamics", "ensemble"), "dyn_batch_size": ("dynamics", "batch_size"),
+    "dyn_lr": ("dynamics", "lr"), "dyn_updates_per_step": ("dynamics", "updates_per_step"),
+    "dyn_pretrain_steps": ("dynamics", "pretrain_steps"),
+    "model_capacity": ("dynamics", "capacity"), "mpc_samples": ("mpc", "samples"),
+    "mpc_horizon": ("mpc", "horizon"), "mpc_discount": ("mpc", "discount"),
+    "mpc_dtype": ("mpc", "dtype"), "mpc_backend": ("mpc", "backend"),
+    "svm_backend": ("chain", "svm_backend"), "inband_eval_envs": ("eval", "inband_envs"),
+    "inband_eval_window": ("eval", "inband_window"),
+    "inband_eval_batched": ("eval", "inband_batched"), "eval_every": ("eval", "every"),
+    "eval_episodes": ("eval", "episodes"), "checkpoint_every": ("run", "checkpoint_every"),
+    "keep_checkpoints": ("run", "keep_checkpoints"), "preset": (None, "preset"),
+}
+DOTTED_NAMES: dict[str, str] = {flat: (f"{s}.{f}" if s else f)
+                                for flat, (s, f) in FLAT_NAMES.items()}
+"""Flat name -> the field's full name (`section.field`; the top-level fields: their name)."""
+_BY_DOTTED = {dotted: flat for flat, dotted in DOTTED_NAMES.items()}
+_FLAT_OF = {(s, f): flat for flat, (s, f) in FLAT_NAMES.items()}
+
+
+def flat_name(name: str) -> str:
+    """The flat name of a field given by its flat or its `section.field` name; a ValueError
+    naming it (a retired field as removed, a typo with the closest names) otherwise."""
+    if name in FLAT_NAMES:
+        return name
+    if name in _BY_DOTTED:
+        return _BY_DOTTED[name]
+    raise ValueError(unknown_fields_message([name]))
+
+
+def unknown_fields_message(names) -> str:
+    """The error for names that are no Config field: retired ones say so and what their value
+    was; others list the closest field names."""
+    names = sorted(names)
+    retired = [n for n in names if n in RETIRED_FIELDS]
+    if retired:
+        said = ", ".join(f"{n} (it was {RETIRED_FIELDS[n]!r})" for n in retired)
+        return (f"retired config field(s) {retired}: this version no longer has {said}; drop "
+                f"them (saved runs that hold them at that value still load)")
+    close = sorted({c for n in names for c in difflib.get_close_matches(
+        n, list(FLAT_NAMES) + list(_BY_DOTTED), n=3)})
+    hint = f"; did you mean {', '.join(close)}?" if close else ""
+    return (f"unknown config field(s) {names}{hint} (valid fields: section.field or the flat "
+            f"names; the list: dscpp_jax.config.FLAT_NAMES); e.g. "
+            f"{', '.join(sorted(DOTTED_NAMES.values())[:3])}, ...")
+
+
+def _check_section(section) -> None:
+    """Type-check every field of a section (`check_field` without the CHOICES values: a saved run
+    may hold a value this version dropped)."""
+    for f in dataclasses.fields(section):
+        check_field(_FLAT_OF[SECTION_NAMES[type(section)], f.name], getattr(section, f.name),
+                    values=False)
+
+
+def flat_config(d: dict) -> dict:
+    """A saved config (config.json's "config": nested by section, or flat as runs made before the
+    sections wrote it) as {flat name: value}; a nested entry this version does not know becomes
+    `section.field`."""
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        if k in SECTIONS and isinstance(v, dict):
+            for f, x in v.items():
+                out[_FLAT_OF.get((k, f), f"{k}.{f}")] = x
+        else:
+            out[k] = v
+    return out
+
+
+@dataclass(frozen=True, init=False)
+class Config:
+    """Everything static about a training run (sizes, schedule, hyperparameters): what the run is
+    (env, algo, subgoal, preset) and one section per component (task, run, td3, dynamics, mpc,
+    chain, frontier, eval), each a frozen dataclass.
+
+    `Config(...)` takes sections (`td3=TD3Section(...)`) and single fields by their flat name
+    (`td3_lr=1e-4`) or full name (`**{"td3.lr": 1e-4}`), the others at their defaults.
+
+    Units: env steps are steps of one environment unless a field says "all environments
+    together"; distances are in the maze's x-y units (the ant's and the point mass's positions);
+    cadences count `train_step` calls."""
+
+    env: str = "point_u_maze"
+    """environment name for `envs.make`: an ant maze (one of MAZES) or its point-mass twin
+    (point_ + the maze)"""
+    algo: str = "mb_dscpp"
+    """the learner, one of ALGOS"""
+    subgoal: str = "robust"
+    """how a subgoal is chosen in the target option's initiation region: robust or dp"""
     preset: str = "paper"
     """the preset this config came from (one of PRESETS)"""
+    task: TaskSection = dataclasses.field(default_factory=TaskSection)
+    """the environment's physics and episodes"""
+    run: RunSection = dataclasses.field(default_factory=RunSection)
+    """seed, batching, schedule and checkpoints"""
+    td3: TD3Section = dataclasses.field(default_factory=TD3Section)
+    """TD3 + HER, replay and exploration"""
+    dynamics: DynamicsSection = dataclasses.field(default_factory=DynamicsSection)
+    """the learned dynamics model"""
+    mpc: MPCSection = dataclasses.field(default_factory=MPCSection)
+    """MPC over the learned model"""
+    chain: ChainSection = dataclasses.field(default_factory=ChainSection)
+    """the skill chain and its classifiers"""
+    frontier: FrontierSection = dataclasses.field(default_factory=FrontierSection)
+    """the chain's frontier"""
+    eval: EvalSection = dataclasses.field(default_factory=EvalSection)
+    """separate and in-band evaluation"""
 
-    def __post_init__(self):
-        check_fields(self, values=False)   # a saved run may hold a value this version dropped
+    def __init__(self, **fields: Any):
+        for f in dataclasses.fields(Config):
+            object.__setattr__(self, f.name, f.default if f.default is not dataclasses.MISSING
+                               else f.default_factory())
+        _set_fields(self, fields, values=False)
 
     # ------------------------------------------------------------------------------------------
     @property
@@ -314,8 +517,8 @@ class Config:
     @property
     def per_option_td3(self) -> bool:
         """Whether each option slot has its own TD3 (region policies always; goal-conditioned
-        policies with shared_critic=False)."""
-        return self.option_policies == "region" or not self.shared_critic
+        policies with td3.shared_critic=False)."""
+        return self.option_policies == "region" or not self.td3.shared_critic
 
     @property
     def exploration_per_option(self) -> bool:
@@ -325,99 +528,110 @@ class Config:
 
     @property
     def effective_global_option_timeout(self) -> int:
-        if self.global_option_timeout > 0:
-            return self.global_option_timeout
-        return 1 if self.algo in ("dsc", "dual") else self.option_timeout
+        if self.chain.global_option_timeout > 0:
+            return self.chain.global_option_timeout
+        return 1 if self.algo in ("dsc", "dual") else self.chain.option_timeout
 
     @property
     def effective_initiation_period(self) -> int:
-        if self.initiation_period >= 0:
-            return self.initiation_period
+        if self.chain.initiation_period >= 0:
+            return self.chain.initiation_period
         return 2 if self.algo in ("dsc", "dual") else 0
 
     @property
     def steps_per_iteration_total(self) -> int:
-        return self.num_envs * self.steps_per_iter
+        return self.run.num_envs * self.run.steps_per_iter
 
     @property
     def td3_updates(self) -> int:
         """TD3 gradient steps per train_step."""
-        return max(1, int(round(self.td3_updates_per_step * self.steps_per_iteration_total)))
+        return max(1, int(round(self.td3.updates_per_step * self.steps_per_iteration_total)))
 
     @property
     def dyn_updates(self) -> int:
         """Dynamics-model gradient steps per train_step (model-based algorithms only)."""
         if not self.model_based:
             return 0
-        return max(1, int(round(self.dyn_updates_per_step * self.steps_per_iteration_total)))
+        return max(1, int(round(self.dynamics.updates_per_step * self.steps_per_iteration_total)))
 
     @property
     def effective_random_prob(self) -> float:
-        if self.random_action_prob >= 0:
-            return self.random_action_prob
+        if self.td3.random_action_prob >= 0:
+            return self.td3.random_action_prob
         return 0.1 if self.model_based else 0.2
 
     @property
     def effective_td3_lr(self) -> float:
-        if self.td3_lr > 0:
-            return self.td3_lr
-        return 1e-5 if self.model_based else 3e-4
+        return self.td3.effective_lr(self.model_based)
 
     @property
     def inband_window(self) -> int:
         """K: finished in-band episodes that `inband/success_rate` averages over."""
-        return self.inband_eval_window if self.inband_eval_window > 0 else self.inband_eval_envs
+        return self.eval.inband_window if self.eval.inband_window > 0 else self.eval.inband_envs
 
     @property
     def num_iterations(self) -> int:
-        return -(-self.total_env_steps // self.steps_per_iteration_total)
+        return -(-self.run.total_env_steps // self.steps_per_iteration_total)
 
     @property
     def frontier_on(self) -> bool:
         """Whether the skill chain uses the chain's frontier (frontier starts or parents)."""
-        return self.hierarchical and (self.frontier_start_prob > 0 or self.frontier_parent)
+        return self.hierarchical and (self.frontier.start_prob > 0 or self.frontier.parent)
 
     def inert_fields(self) -> frozenset:
-        """Fields this config's other settings leave without effect (comparing two configs, a
-        difference in them changes nothing): the chain's frontier's parameters where the frontier
-        is off, and the frontier starts' inner radius where only frontier parents are on."""
+        """Fields (flat names) this config's other settings leave without effect (comparing two
+        configs, a difference in them changes nothing): the chain's frontier's parameters where
+        the frontier is off, and the frontier starts' inner radius where only frontier parents
+        are on."""
         if not self.frontier_on:
             return frozenset({"frontier_radius", "frontier_inner_radius", "frontier_candidates",
                               "frontier_min_open"})
-        return frozenset() if self.frontier_start_prob > 0 else frozenset({"frontier_inner_radius"})
+        return frozenset() if self.frontier.start_prob > 0 else frozenset({"frontier_inner_radius"})
 
     # ------------------------------------------------------------------------------------------
+    def get(self, name: str) -> Any:
+        """The value of the field with flat or `section.field` name `name`."""
+        section, field = FLAT_NAMES[flat_name(name)]
+        return getattr(self if section is None else getattr(self, section), field)
+
     def override(self, **kw: Any) -> "Config":
-        """A copy with some fields replaced; unknown names, and values that do not fit their field
-        (`check_field`), raise a ValueError."""
-        names = {f.name for f in dataclasses.fields(self)}
-        bad = sorted(set(kw) - names)
-        if bad:
-            raise ValueError(f"unknown config field(s) {bad}; valid fields: {sorted(names)}")
-        for name, value in kw.items():
-            check_field(name, value)
-        return dataclasses.replace(self, **kw)
+        """A copy with some fields replaced, each given by its flat name (`td3_lr=1e-4`), its
+        full name (`**{"td3.lr": 1e-4}`) or as a whole section (`td3=TD3Section(...)`); unknown
+        names, and values that do not fit their field (`check_field`), raise a ValueError."""
+        new = object.__new__(Config)
+        for f in dataclasses.fields(Config):
+            object.__setattr__(new, f.name, getattr(self, f.name))
+        _set_fields(new, kw, values=True)
+        return new
 
     def device_view(self) -> "Config":
         """The fields that shape the jitted computation; host-only fields (seed, schedule length,
         logging/checkpoint cadence, preset name) reset, so changing them never recompiles."""
-        return dataclasses.replace(self, **HOST_ONLY_DEFAULTS)
+        return self.override(**HOST_ONLY_DEFAULTS)
 
     def to_dict(self) -> dict:
+        """The config as saved (config.json): the top-level fields and one mapping per section."""
         return dataclasses.asdict(self)
+
+    def flat(self) -> dict:
+        """{flat name: value} for every field (the table FLAT_NAMES' order)."""
+        return {name: self.get(name) for name in FLAT_NAMES}
 
     def to_json(self) -> str:
         return json.dumps(self.to_dict(), indent=2, sort_keys=True)
 
     @classmethod
     def from_dict(cls, d: dict) -> "Config":
-        names = {f.name for f in dataclasses.fields(cls)}
-        d = {**LEGACY_DEFAULTS, **d}
-        return cls(**{k: v for k, v in d.items() if k in names})
+        """The Config of a saved mapping, nested (`to_dict`) or flat (runs made before the
+        sections); fields it lacks take `LEGACY_DEFAULTS`, else their defaults, and names this
+        version does not know are dropped."""
+        d = {**LEGACY_DEFAULTS, **flat_config(d)}
+        return cls(**{k: v for k, v in d.items() if k in FLAT_NAMES})
 
     @classmethod
     def from_saved(cls, d: Any, defaults: Any = None, source: str = "this run") -> "Config":
-        """The Config of a saved run (config.json's "config"), checked against this version.
+        """The Config of a saved run (config.json's "config", nested or flat), checked against
+        this version.
 
         Fields the run lacks (added since) take their defaults, which is what it used. Fields this
         version no longer has are ignored when they hold the value that meant "off" (the default
@@ -425,10 +639,10 @@ class Config:
         ValueError naming them, since the run's results depend on behaviour that is gone."""
         if not isinstance(d, dict):
             raise ValueError(f"{source}: config.json's \"config\" is not a mapping of Config fields")
-        names = {f.name for f in dataclasses.fields(cls)}
-        off = {**RETIRED_FIELDS, **(defaults if isinstance(defaults, dict) else {})}
+        d = flat_config(d)
+        off = {**RETIRED_FIELDS, **(flat_config(defaults) if isinstance(defaults, dict) else {})}
         _missing = object()
-        gone = {k: v for k, v in d.items() if k not in names and off.get(k, _missing) != v}
+        gone = {k: v for k, v in d.items() if k not in FLAT_NAMES and off.get(k, _missing) != v}
         if gone:
             said = ", ".join(f"{k}={v!r}" + (f" (off: {off[k]!r})" if k in off else "")
                              for k, v in sorted(gone.items()))
@@ -455,86 +669,86 @@ class Config:
                      "gestation", "td3_batch_size", "dyn_batch_size", "mpc_samples", "mpc_horizon",
                      "eval_episodes", "max_pos_traj", "max_neg", "td3_hidden", "dyn_hidden",
                      "dyn_ensemble", "total_env_steps"):
-            need(int(getattr(self, name)) >= 1, f"{name}={getattr(self, name)} must be >= 1")
-        need(self.max_options >= 3, f"max_options={self.max_options} must be >= 3 (global, goal "
-             "and at least one chain link)")
-        need(self.warmup_episodes >= 0, "warmup_episodes must be >= 0")
+            need(int(self.get(name)) >= 1, f"{name}={self.get(name)} must be >= 1")
+        need(self.chain.max_options >= 3, f"max_options={self.chain.max_options} must be >= 3 "
+             "(global, goal and at least one chain link)")
+        need(self.task.warmup_episodes >= 0, "warmup_episodes must be >= 0")
         for name in ("eval_every", "checkpoint_every"):
-            need(int(getattr(self, name)) >= 0,
-                 f"{name}={getattr(self, name)} must be >= 0 (train_step calls between them; "
+            need(int(self.get(name)) >= 0,
+                 f"{name}={self.get(name)} must be >= 0 (train_step calls between them; "
                  f"0: {'never' if name == 'eval_every' else 'only at exit'})")
-        need(self.log_every >= 1, f"log_every={self.log_every} must be >= 1")
-        need(self.keep_checkpoints >= 1, f"keep_checkpoints={self.keep_checkpoints} must be >= 1")
-        need(self.seed >= 0, f"seed={self.seed} must be >= 0 (seeds are non-negative integers, "
-             "as --seeds takes them)")
-        need(self.total_episodes >= 0, "total_episodes must be >= 0 (0: no episode limit)")
-        need(self.goal_tolerance > 0, "goal_tolerance must be > 0")
-        need(0.0 < self.discount <= 1.0, "discount must be in (0, 1]")
-        need(0.0 < self.mpc_discount <= 1.0, "mpc_discount must be in (0, 1]")
-        need(not self.td3_clip_targets or self.discount < 1.0,
+        need(self.run.keep_checkpoints >= 1,
+             f"keep_checkpoints={self.run.keep_checkpoints} must be >= 1")
+        need(self.run.seed >= 0, f"seed={self.run.seed} must be >= 0 (seeds are non-negative "
+             "integers, as --seeds takes them)")
+        need(self.run.total_episodes >= 0, "total_episodes must be >= 0 (0: no episode limit)")
+        need(self.task.goal_tolerance > 0, "goal_tolerance must be > 0")
+        need(0.0 < self.td3.discount <= 1.0, "discount must be in (0, 1]")
+        need(0.0 < self.mpc.discount <= 1.0, "mpc_discount must be in (0, 1]")
+        need(not self.td3.clip_targets or self.td3.discount < 1.0,
              "td3_clip_targets needs discount < 1 (with discount 1 the values have no lower "
              "bound); lower discount or set td3_clip_targets=false")
-        need(0.0 <= self.her_relabel_prob <= 1.0, "her_relabel_prob must be in [0, 1]")
-        need(self.random_action_prob <= 1.0, "random_action_prob must be <= 1")
-        need(self.td3_updates_per_step >= 0 and self.dyn_updates_per_step >= 0,
+        need(0.0 <= self.td3.her_relabel_prob <= 1.0, "her_relabel_prob must be in [0, 1]")
+        need(self.td3.random_action_prob <= 1.0, "random_action_prob must be <= 1")
+        need(self.td3.updates_per_step >= 0 and self.dynamics.updates_per_step >= 0,
              "updates_per_step values must be >= 0")
-        need(self.td3_sample_block >= 1,
+        need(self.td3.sample_block >= 1,
              f"td3_sample_block must be >= 1 (1: one replay sample per gradient step), got "
-             f"{self.td3_sample_block}")
-        need(self.td3_action_l2 >= 0, "td3_action_l2 must be >= 0 (0: off)")
-        need(self.group_size >= 1, f"group_size={self.group_size} must be >= 1")
-        need(self.mpc_backend != "pallas" or self.mpc_dtype == "bfloat16",
+             f"{self.td3.sample_block}")
+        need(self.td3.action_l2 >= 0, "td3_action_l2 must be >= 0 (0: off)")
+        need(self.run.group_size >= 1, f"group_size={self.run.group_size} must be >= 1")
+        need(self.mpc.backend != "pallas" or self.mpc.dtype == "bfloat16",
              "mpc_backend=pallas computes in bfloat16: also set mpc_dtype=bfloat16 (or use "
              "mpc_backend=xla)")
-        per_env = self.replay_capacity // self.num_envs
-        need(per_env >= max(2, self.steps_per_iter),
-             f"replay_capacity={self.replay_capacity} gives {per_env} steps per environment for "
-             f"num_envs={self.num_envs}; raise replay_capacity to at least "
-             f"{self.num_envs * max(2, self.steps_per_iter)}")
-        need(per_env >= self.option_timeout + 1,
+        per_env = self.td3.replay_capacity // self.run.num_envs
+        need(per_env >= max(2, self.run.steps_per_iter),
+             f"replay_capacity={self.td3.replay_capacity} gives {per_env} steps per environment for "
+             f"num_envs={self.run.num_envs}; raise replay_capacity to at least "
+             f"{self.run.num_envs * max(2, self.run.steps_per_iter)}")
+        need(per_env >= self.chain.option_timeout + 1,
              f"replay_capacity per environment ({per_env}) must exceed option_timeout="
-             f"{self.option_timeout} so HER can see whole option segments; raise replay_capacity")
+             f"{self.chain.option_timeout} so HER can see whole option segments; raise replay_capacity")
         if self.model_based:
-            mper = self.model_capacity // self.num_envs
-            need(mper >= max(2, self.steps_per_iter),
-                 f"model_capacity={self.model_capacity} too small for num_envs={self.num_envs} and "
-                 f"steps_per_iter={self.steps_per_iter}; raise it to at least "
-                 f"{self.num_envs * max(2, self.steps_per_iter)}")
-        need(self.inband_eval_envs >= 0,
-             f"inband_eval_envs={self.inband_eval_envs} must be >= 0 (0: no in-band evaluation; "
+            mper = self.dynamics.capacity // self.run.num_envs
+            need(mper >= max(2, self.run.steps_per_iter),
+                 f"model_capacity={self.dynamics.capacity} too small for num_envs={self.run.num_envs} and "
+                 f"steps_per_iter={self.run.steps_per_iter}; raise it to at least "
+                 f"{self.run.num_envs * max(2, self.run.steps_per_iter)}")
+        need(self.eval.inband_envs >= 0,
+             f"inband_eval_envs={self.eval.inband_envs} must be >= 0 (0: no in-band evaluation; "
              f"e.g. 16 runs 16 evaluation episodes from the task start inside each train_step)")
-        need(self.inband_eval_window >= 0,
-             f"inband_eval_window={self.inband_eval_window} must be >= 0 (0: the last "
+        need(self.eval.inband_window >= 0,
+             f"inband_eval_window={self.eval.inband_window} must be >= 0 (0: the last "
              f"inband_eval_envs finished in-band episodes)")
-        need(self.buffer_len < self.option_timeout + 1,
+        need(self.chain.buffer_len < self.chain.option_timeout + 1,
              "buffer_len must be <= option_timeout")
-        need(0.0 <= float(self.task_start_prob) <= 1.0,
-             f"task_start_prob={self.task_start_prob} must be in [0, 1] (the share of training "
+        need(0.0 <= float(self.task.start_prob) <= 1.0,
+             f"task_start_prob={self.task.start_prob} must be in [0, 1] (the share of training "
              f"episodes that start at the task start; 0: all diverse starts)")
-        need(0.0 <= float(self.frontier_start_prob) <= 1.0
-             and float(self.task_start_prob) + float(self.frontier_start_prob) <= 1.0,
-             f"frontier_start_prob={self.frontier_start_prob} must be in [0, 1] and, with "
-             f"task_start_prob={self.task_start_prob}, sum to at most 1 (the shares of training "
+        need(0.0 <= float(self.frontier.start_prob) <= 1.0
+             and float(self.task.start_prob) + float(self.frontier.start_prob) <= 1.0,
+             f"frontier_start_prob={self.frontier.start_prob} must be in [0, 1] and, with "
+             f"task_start_prob={self.task.start_prob}, sum to at most 1 (the shares of training "
              f"episodes that start at the task start and on the chain's frontier)")
-        need(self.frontier_start_prob == 0 or self.diverse_starts,
+        need(self.frontier.start_prob == 0 or self.task.diverse_starts,
              "frontier_start_prob > 0 draws some of the diverse starts on the chain's frontier: "
              "it needs diverse_starts=true")
-        need(self.frontier_start_prob == 0 and not self.frontier_parent or self.hierarchical,
+        need(self.frontier.start_prob == 0 and not self.frontier.parent or self.hierarchical,
              f"frontier_start_prob and frontier_parent act on the skill chain: algo={self.algo!r} "
              f"has none; use one of {HIERARCHICAL_ALGOS} or leave them off")
-        need(0 <= self.frontier_inner_radius < self.frontier_radius,
-             f"frontier_inner_radius={self.frontier_inner_radius} and frontier_radius="
-             f"{self.frontier_radius}: need 0 <= frontier_inner_radius < frontier_radius")
-        need(self.frontier_candidates >= 1 and self.frontier_min_open >= 1,
-             f"frontier_candidates={self.frontier_candidates} and frontier_min_open="
-             f"{self.frontier_min_open} must be >= 1")
-        need(self.shared_critic or not self.model_based,
+        need(0 <= self.frontier.inner_radius < self.frontier.radius,
+             f"frontier_inner_radius={self.frontier.inner_radius} and frontier_radius="
+             f"{self.frontier.radius}: need 0 <= frontier_inner_radius < frontier_radius")
+        need(self.frontier.candidates >= 1 and self.frontier.min_open >= 1,
+             f"frontier_candidates={self.frontier.candidates} and frontier_min_open="
+             f"{self.frontier.min_open} must be >= 1")
+        need(self.td3.shared_critic or not self.model_based,
              f"shared_critic=False (one TD3 per option) is implemented for the model-free "
              f"algorithms only ({', '.join(a for a in ALGOS if a not in MODEL_BASED_ALGOS)}): "
              f"algo={self.algo!r} plans with MPC, whose value term uses one critic for all "
              f"envs; set shared_critic=True or use algo='mf_dscpp'")
-        need(self.global_option_timeout >= 0,
-             f"global_option_timeout={self.global_option_timeout} must be >= 0 (0: the "
+        need(self.chain.global_option_timeout >= 0,
+             f"global_option_timeout={self.chain.global_option_timeout} must be >= 0 (0: the "
              f"algorithm's)")
         return self
 
@@ -542,11 +756,42 @@ class Config:
 # ------------------------------------------------------------------------------------------------
 # Field checks
 # ------------------------------------------------------------------------------------------------
-_FIELD_TYPES: dict[str, str] = {f.name: f.type if isinstance(f.type, str) else f.type.__name__
-                                for f in dataclasses.fields(Config)}
-_DEFAULTS: dict[str, Any] = {f.name: f.default for f in dataclasses.fields(Config)}
+SECTION_NAMES: dict[type, str] = {cls: name for name, cls in SECTIONS.items()}
+_DECLARED = {(s, f.name): f for s, cls in ((None, Config), *((n, c) for n, c in SECTIONS.items()))
+             for f in dataclasses.fields(cls)}
+_FIELD_TYPES: dict[str, str] = {}
+_DEFAULTS: dict[str, Any] = {}
+for _flat, _where in FLAT_NAMES.items():
+    _f = _DECLARED[_where]
+    _FIELD_TYPES[_flat] = _f.type if isinstance(_f.type, str) else _f.type.__name__
+    _DEFAULTS[_flat] = _f.default
+assert set(_DECLARED) == set(FLAT_NAMES.values()) | {(None, s) for s in SECTIONS}
 _TYPE_NAMES = {"int": "an integer", "float": "a number", "bool": "true or false",
                "str": "a string"}
+
+
+def _set_fields(config: Config, fields: dict, values: bool) -> None:
+    """Set `fields` (flat names, `section.field` names or whole sections) on a Config being
+    built, checking each value (`check_field`; with `values`, the CHOICES too)."""
+    bad = [k for k in fields if k not in FLAT_NAMES and k not in _BY_DOTTED and k not in SECTIONS]
+    if bad:
+        raise ValueError(unknown_fields_message(bad))
+    changes: dict[str, dict[str, Any]] = {}
+    for name, value in fields.items():
+        if name in SECTIONS:
+            if not isinstance(value, SECTIONS[name]):
+                raise ValueError(f"invalid config: {name}={value!r}; {name} is a "
+                                 f"{SECTIONS[name].__name__}")
+            object.__setattr__(config, name, value)
+            continue
+        check_field(name, value, values)
+        section, field = FLAT_NAMES[flat_name(name)]
+        if section is None:
+            object.__setattr__(config, field, value)
+        else:
+            changes.setdefault(section, {})[field] = value
+    for section, change in changes.items():
+        object.__setattr__(config, section, dataclasses.replace(getattr(config, section), **change))
 
 
 def _one_of(choices) -> str:
@@ -568,15 +813,16 @@ def _type_ok(kind: str, value: Any) -> bool:
 
 
 def check_field(name: str, value: Any, values: bool = True) -> None:
-    """Raise a ValueError naming the field, the value and what it takes if `value` does not fit
-    Config field `name`: its declared type (a float field takes an int too) and, with `values`,
-    for the fields of `CHOICES`, one of the listed values."""
-    kind = _FIELD_TYPES[name]
+    """Raise a ValueError naming the field (as given: flat or `section.field`), the value and what
+    it takes if `value` does not fit Config field `name`: its declared type (a float field takes
+    an int too) and, with `values`, for the fields of `CHOICES`, one of the listed values."""
+    flat = flat_name(name)
+    kind = _FIELD_TYPES[flat]
     if not _type_ok(kind, value):
         raise ValueError(f"invalid config: {name}={value!r} ({type(value).__name__}); {name} is "
-                         f"{_TYPE_NAMES[kind]} ({kind}), e.g. {name}={_DEFAULTS[name]!r}")
-    if values and name in CHOICES and value not in CHOICES[name]:
-        allowed = CHOICES[name]
+                         f"{_TYPE_NAMES[kind]} ({kind}), e.g. {name}={_DEFAULTS[flat]!r}")
+    if values and flat in CHOICES and value not in CHOICES[flat]:
+        allowed = CHOICES[flat]
         say = (f"choose {_one_of(allowed)}" if len(allowed) > 3 else
                f"{name} must be {_one_of(allowed)}")
         raise ValueError(f"invalid config: {name}={value!r}; {say}")
@@ -584,8 +830,8 @@ def check_field(name: str, value: Any, values: bool = True) -> None:
 
 def check_fields(config: Config, values: bool = True) -> None:
     """`check_field` for every field of `config`."""
-    for name in _FIELD_TYPES:
-        check_field(name, getattr(config, name), values)
+    for name in FLAT_NAMES:
+        check_field(name, config.get(name), values)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -709,8 +955,7 @@ def paper_rule_overrides(name: str, env: str, algo: str) -> dict[str, Any]:
     full = Config(**preset_fields(name, env, algo))
     paper = Config(**preset_fields(name, env, algo, beyond_paper=False))
     skip = paper.inert_fields()
-    return {k: v for k, v in paper.to_dict().items()
-            if k not in skip and getattr(full, k) != v}
+    return {k: v for k, v in paper.flat().items() if k not in skip and full.get(k) != v}
 
 
 def preset(name: str = "fast", env: str = "point_u_maze", algo: str = "mb_dscpp",
@@ -723,22 +968,25 @@ def preset(name: str = "fast", env: str = "point_u_maze", algo: str = "mb_dscpp"
     Unknown presets, environments, learners and fields raise a ValueError listing the known
     ones, and so does a value of the wrong type for its field; as for any Config, `validate()`
     checks the rest."""
-    fields = preset_fields(name, env, algo, overrides.get("diverse_starts", True))
-    bad = sorted(set(overrides) - set(_FIELD_TYPES))
+    diverse = overrides.get("diverse_starts", overrides.get("task.diverse_starts", True))
+    fields = preset_fields(name, env, algo, diverse)
+    bad = [k for k in overrides if k not in FLAT_NAMES and k not in _BY_DOTTED]
     if bad:
-        raise ValueError(f"unknown config field(s) {bad}; valid fields: {sorted(_FIELD_TYPES)}")
-    fields.update(overrides)
+        raise ValueError(unknown_fields_message(bad))
+    fields.update({flat_name(k): v for k, v in overrides.items()})
     return Config(**fields)
 
 
 def parse_value(field_name: str, text: str) -> Any:
-    """Convert a command-line string (`--set field=text`) to the type of Config field
-    `field_name`; a ValueError names the field, what it takes and an example. (The values of
-    `CHOICES` fields are checked by `Config.validate`.)"""
-    if field_name not in _FIELD_TYPES:
-        raise ValueError(f"unknown config field {field_name!r}; valid: {sorted(_FIELD_TYPES)}")
-    t = _FIELD_TYPES[field_name]
-    example = _DEFAULTS[field_name]
+    """Convert a command-line string (`--set field=text`, the field by its flat or its
+    `section.field` name) to the type of Config field `field_name`; a ValueError names the field,
+    what it takes and an example. (The values of `CHOICES` fields are checked by
+    `Config.validate`.)"""
+    if field_name not in FLAT_NAMES and field_name not in _BY_DOTTED:
+        raise ValueError(unknown_fields_message([field_name]).replace(
+            f"field(s) [{field_name!r}]", f"field {field_name!r}"))
+    t = _FIELD_TYPES[flat_name(field_name)]
+    example = _DEFAULTS[flat_name(field_name)]
     if t == "bool":
         if text.lower() in ("1", "true", "yes", "on"):
             return True

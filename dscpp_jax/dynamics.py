@@ -24,6 +24,7 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
+from dscpp_jax.config import DynamicsSection
 from dscpp_jax.replay import valid_positions
 
 __all__ = [
@@ -72,6 +73,12 @@ class DynamicsConfig:
         if self.batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {self.batch_size}")
         object.__setattr__(self, "hidden", tuple(int(h) for h in self.hidden))
+
+    @classmethod
+    def from_section(cls, section: DynamicsSection) -> "DynamicsConfig":
+        """The dynamics model f_xi a run config's `dynamics` section sets."""
+        return cls(ensemble_size=section.ensemble, hidden=(section.hidden, section.hidden),
+                   lr=section.lr, batch_size=section.batch_size)
 
 
 class DynamicsMLP(nn.Module):

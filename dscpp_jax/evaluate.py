@@ -23,6 +23,7 @@ from dscpp_jax import trainer as T
 from dscpp_jax.config import Config
 from dscpp_jax.td3 import td3_random_prob
 from dscpp_jax.envs.goal_env import select_states
+from dscpp_jax.td3 import TD3Config
 
 
 @flax.struct.dataclass
@@ -53,14 +54,14 @@ def evaluate_episodes_impl(state: T.TrainState, key, num_episodes: int, starts=N
 
     `record` (static) also keeps the observations, subgoals and (MJX envs) qpos of every step;
     off, the program is the same as without it. `num_steps` (static) caps the episodes at fewer
-    steps than `config.episode_length` (an episode cut short counts as not successful).
+    steps than `config.task.episode_length` (an episode cut short counts as not successful).
     `explore` (static) acts with training's action noise instead of deterministically: the
     actor's Gaussian noise (model-free; no random-action schedule) or MPC with random actions at
     `random_action_prob` (model-based). A diagnostic: it tells a policy that is wrong apart from
     one that is only stuck in one deterministic motion from nearly the same start every time."""
     config: Config = state.config
-    N, L, K = num_episodes, config.episode_length, config.max_options
-    env = T.make_env(config, worlds=config.group_size * N)
+    N, L, K = num_episodes, config.task.episode_length, config.chain.max_options
+    env = T.make_env(config, worlds=config.run.group_size * N)
     if num_steps is not None:
         L = max(1, min(L, int(num_steps)))
     k_reset, k_run = jax.random.split(key)
@@ -216,7 +217,7 @@ def evaluate(state: T.TrainState, key: Optional[jax.Array] = None, num_episodes:
         num_episodes = int(starts.shape[0])
     if num_episodes is not None and int(num_episodes) < 1:
         raise ValueError(f"num_episodes must be >= 1, got {num_episodes}")
-    n = int(num_episodes or cfg.eval_episodes)
+    n = int(num_episodes or cfg.eval.episodes)
     if key is None:
         key = jax.random.fold_in(jax.random.PRNGKey(1_000_003),
                                  int(state.counters.iteration))
@@ -245,7 +246,7 @@ def make_policy(state: T.TrainState, deterministic: bool = True) -> Policy:
     env = T.make_env(config)
     chain, td3, dyn, dp_table = state.chain, state.td3, state.dyn, state.dp_table
     goal = jnp.asarray(env.goal, jnp.float32)
-    tcfg = A.td3_config(config)
+    tcfg = TD3Config.from_section(config.td3, config.model_based)
 
     def init(obs):
         return A.exec_init(config, obs, goal)

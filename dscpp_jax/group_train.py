@@ -150,8 +150,8 @@ def check_group_memory(cfg: Config, n: int, mesh) -> dict:
     if fit is not None:
         raise GroupTooLarge(
             f"a group of {n} seeds does not fit: one seed's state is {seed_b / 2**20:.1f} MiB "
-            f"(replay_capacity={cfg.replay_capacity}, model_capacity={cfg.model_capacity}, "
-            f"num_envs={cfg.num_envs}), so the group needs about {where}. Train at most {fit} "
+            f"(replay_capacity={cfg.td3.replay_capacity}, model_capacity={cfg.dynamics.capacity}, "
+            f"num_envs={cfg.run.num_envs}), so the group needs about {where}. Train at most {fit} "
             f"seeds at once, or lower replay_capacity / model_capacity. Nothing was written")
     return numbers
 
@@ -164,7 +164,7 @@ class GroupProgress:
     def __init__(self, cfg: Config, n: int, env_steps: np.ndarray, bar: bool, lead: bool,
                  t_start: float):
         self.cfg, self.lead, self.t_start = cfg, lead, t_start
-        self.pbar = HL.progress_bar(cfg.total_env_steps * n, int(env_steps.sum()),
+        self.pbar = HL.progress_bar(cfg.run.total_env_steps * n, int(env_steps.sum()),
                                     f"{cfg.env}/{cfg.algo} x{n} seeds") if bar and lead else None
         self.inband = np.full((n,), np.nan)     # in-band success per seed (NaN: none finished yet)
         self.options = np.full((n,), np.nan)
@@ -214,7 +214,7 @@ def train_group(cfg: Config, seeds: Sequence[int], group_dir: Optional[str] = No
                 count_process: bool = False):
     """Train (or resume) a seed group; returns (group state, group_dir, per-seed eval summaries).
 
-    `cfg.seed` is ignored: seed i of the group uses seeds[i]. Stops when every seed's schedule is
+    `cfg.run.seed` is ignored: seed i of the group uses seeds[i]. Stops when every seed's schedule is
     over (a seed that is done earlier is frozen where its separate run would have stopped), on
     Ctrl-C, at the time budget or at `max_iterations` group iterations. The final evaluation
     (eval.json of each seed; the summaries) belongs to the end of the schedule: a group that stops
@@ -254,7 +254,7 @@ def train_group(cfg: Config, seeds: Sequence[int], group_dir: Optional[str] = No
     box = {"states": SG.init_group(seeds, cfg, mesh)}
     jax.block_until_ready(box["states"])
     clock.mark("env build and init")
-    ckpt = SG.GroupCheckpointer(group_dir, keep=cfg.keep_checkpoints)
+    ckpt = SG.GroupCheckpointer(group_dir, keep=cfg.run.keep_checkpoints)
     restored = resume and ckpt.latest_step() is not None
     if restored:
         box["states"] = ckpt.restore(box["states"], mesh)
@@ -295,7 +295,7 @@ def train_group(cfg: Config, seeds: Sequence[int], group_dir: Optional[str] = No
         if lead:
             HL.write_startup(clock, group_dir, show.say, group_iteration=group_it + 1,
                              resumed_at_iteration=start_iter, seeds=list(seeds),
-                             physics=T.resolve_physics(cfg).physics,
+                             physics=T.resolve_physics(cfg).task.physics,
                              device=str(jax.devices()[0].device_kind))
 
     def diverged(bad, group_it):
@@ -341,7 +341,7 @@ def train_group(cfg: Config, seeds: Sequence[int], group_dir: Optional[str] = No
                 t_start=t_start)
             if all(HL.schedule_done(c_, e, p) for c_, e, p in
                    zip(cfgs, end.env_steps, end.episodes)):
-                summaries, res = SG.evaluate_group(box["states"], num_episodes=cfg.eval_episodes,
+                summaries, res = SG.evaluate_group(box["states"], num_episodes=cfg.eval.episodes,
                                                    mesh=mesh)
                 HL.flush_pending(pending, summaries, log, end.last_eval)
     finally:
@@ -376,7 +376,7 @@ def resume_config(group_dir: str, overrides: dict) -> tuple:
     g = read_group(group_dir)
     cfg = Config.from_dict(g["config"])
     allowed = {"total_env_steps", "total_episodes", "eval_every", "eval_episodes",
-               "checkpoint_every", "keep_checkpoints", "log_every"}
+               "checkpoint_every", "keep_checkpoints"}
     bad = sorted(set(overrides) - allowed)
     if bad:
         raise ValueError(f"--resume cannot change {bad}: they change the state's shapes or the "

@@ -109,9 +109,9 @@ def on_main_thread() -> bool:
 
 def schedule_done(cfg: Config, env_steps: float, episodes: float) -> bool:
     """One seed's schedule is over: total_env_steps reached, or total_episodes (when > 0)."""
-    if env_steps >= cfg.total_env_steps:
+    if env_steps >= cfg.run.total_env_steps:
         return True
-    return cfg.total_episodes > 0 and episodes >= cfg.total_episodes
+    return cfg.run.total_episodes > 0 and episodes >= cfg.run.total_episodes
 
 
 def state_done(cfg: Config, state) -> bool:
@@ -151,10 +151,10 @@ def stuck_chain_warning(metrics: dict, cfg: Config, who: str = "") -> Optional[s
     (``experiments/results/README.md``, medium maze)."""
     if metrics.get("options/capacity_hit", 0) < 0.5 or metrics.get("options/start_covered", 1) > 0.5:
         return None
-    return (f"warning: {who}the option table is full (max_options={cfg.max_options}) and no "
+    return (f"warning: {who}the option table is full (max_options={cfg.chain.max_options}) and no "
             f"option's initiation region holds the task start any more; the chain cannot add the "
             f"link it needs, so success from the start will likely stay near 0. Restart with more "
-            f"rows, e.g. --set max_options={cfg.max_options + 8}.")
+            f"rows, e.g. --set max_options={cfg.chain.max_options + 8}.")
 
 
 def stalled_link_warning(metrics: dict, cfg: Config, who: str = "") -> Optional[str]:
@@ -196,7 +196,7 @@ def frontier_note(cfg: Config) -> str:
     if not cfg.frontier_on:
         return ""
     return (f"{cfg.env}: the chain's frontier is on (beyond the paper: frontier_start_prob="
-            f"{cfg.frontier_start_prob:g}, frontier_parent={str(cfg.frontier_parent).lower()}); "
+            f"{cfg.frontier.start_prob:g}, frontier_parent={str(cfg.frontier.parent).lower()}); "
             f"the paper's rule: --set frontier_start_prob=0 --set frontier_parent=false")
 
 
@@ -205,7 +205,7 @@ def medium_td3_note(cfg: Config) -> str:
     at 0.8 and twice the action penalty; beyond the paper, `config.MEDIUM_MODEL_FREE_TD3`),
     saying how to train the other mazes' TD3 instead; "" otherwise."""
     if cfg.env != "medium" or cfg.algo in MODEL_BASED_ALGOS or any(
-            getattr(cfg, k) != v for k, v in MEDIUM_MODEL_FREE_TD3.items()):
+            cfg.get(k) != v for k, v in MEDIUM_MODEL_FREE_TD3.items()):
         return ""
 
     def fmt(v):
@@ -213,7 +213,7 @@ def medium_td3_note(cfg: Config) -> str:
 
     other = preset("fast", "four_rooms", cfg.algo)    # what the other ant mazes train with
     sets = ", ".join(f"{k}={fmt(v)}" for k, v in MEDIUM_MODEL_FREE_TD3.items())
-    back = " ".join(f"--set {k}={fmt(getattr(other, k))}" for k in MEDIUM_MODEL_FREE_TD3)
+    back = " ".join(f"--set {k}={fmt(other.get(k))}" for k in MEDIUM_MODEL_FREE_TD3)
     return (f"{cfg.env}: the model-free learners' TD3 of this maze (beyond the paper: {sets}); "
             f"the other ant mazes': {back}")
 
@@ -439,9 +439,9 @@ def run_loop(cfgs: Sequence[Config], counters: tuple, hooks: LoopHooks, *, budge
         finished = active & np.array([schedule_done(c, e, p) for c, e, p in
                                       zip(cfgs, env_steps, episodes)])
         iters = np.where(active, step_its, iters).astype(int)
-        periodic = active & ((iters % cfg.eval_every == 0) if cfg.eval_every
+        periodic = active & ((iters % cfg.eval.every == 0) if cfg.eval.every
                              else np.zeros((n,), bool))
-        due = periodic | (finished & bool(cfg.eval_every))
+        due = periodic | (finished & bool(cfg.eval.every))
         # A seed that just finished is frozen, so its evaluation gives the same numbers at any
         # later point (the key comes from its iteration): with `pending`, evaluate now only when
         # a periodic evaluation is due anyway, else leave its last row waiting for the next
@@ -478,7 +478,7 @@ def run_loop(cfgs: Sequence[Config], counters: tuple, hooks: LoopHooks, *, budge
         hooks.progress(Progress(iteration=loop_it, metrics=m, rows=rows, active=active,
                                 env_steps=env_steps, episodes=episodes, evaluated=ev is not None,
                                 last_eval=last_eval, step_s=dt))
-        if cfg.checkpoint_every and loop_it % cfg.checkpoint_every == 0:
+        if cfg.run.checkpoint_every and loop_it % cfg.run.checkpoint_every == 0:
             hooks.save(loop_it, False)   # written while the next iterations run
             saved_iter = loop_it
         budget.iteration_took(time.time() - t0)
@@ -502,7 +502,7 @@ class RunProgress:
     per `INBAND_LINE_EVERY` iterations with in-band evaluation."""
 
     def __init__(self, cfg: Config, env_steps: int, bar: bool):
-        self.pbar = progress_bar(cfg.total_env_steps, env_steps,
+        self.pbar = progress_bar(cfg.run.total_env_steps, env_steps,
                                  f"{cfg.env}/{cfg.algo}") if bar else None
 
     def say(self, text: str) -> None:
@@ -580,7 +580,7 @@ def train(cfg: Optional[Config] = None, run_dir: Optional[str] = None, resume: b
     for line in runtime.cpu_warnings(cfg):
         print(line, file=sys.stderr)
 
-    key = jax.random.PRNGKey(cfg.seed)
+    key = jax.random.PRNGKey(cfg.run.seed)
     # On MuJoCo Warp, Warp's kernels build in a thread while XLA compiles `init` and the step
     # ahead of time; `init` runs once the thread is done (see `trainer.prewarm_physics`)
     clock.mark("set-up")
@@ -611,10 +611,10 @@ def train(cfg: Optional[Config] = None, run_dir: Optional[str] = None, resume: b
             raise write_error(run_dir, e, "write config.json") from None
     try:
         logger = RunLogger(run_dir, resume_iteration=start_iter,
-                           wandb=None if wandb is None else {**wandb, "config": cfg.to_dict()})
+                           wandb=None if wandb is None else {**wandb, "config": cfg.flat()})
     except OSError as e:
         raise write_error(run_dir, e, "write metrics.csv") from None
-    ckpt = ck.Checkpointer(run_dir, keep=cfg.keep_checkpoints)
+    ckpt = ck.Checkpointer(run_dir, keep=cfg.run.keep_checkpoints)
     box = {"state": state, "prev": state}   # the state, and the one before the last step
     interrupt = Interrupt("interrupt: finishing this iteration, saving a checkpoint, then exiting "
                           "(Ctrl-C again to abort without saving)")
@@ -630,7 +630,7 @@ def train(cfg: Optional[Config] = None, run_dir: Optional[str] = None, resume: b
     def startup(loop_it):
         clock.mark("first iteration")
         write_startup(clock, run_dir, show.say, iteration=int(box["state"].counters.iteration),
-                      resumed_at_iteration=start_iter, physics=cfg.physics,
+                      resumed_at_iteration=start_iter, physics=cfg.task.physics,
                       device=str(jax.devices()[0].device_kind))
 
     def diverged(bad, it):
@@ -683,10 +683,10 @@ def final_evaluation(state, run_dir: str):
     start), written to run_dir/eval.json with where the run stood, as a seed group writes it
     for each seed and `eval` for a checkpoint. Returns (summary, EvalResult)."""
     cfg = state.config
-    ev, res = evaluate(state, num_episodes=cfg.eval_episodes)
+    ev, res = evaluate(state, num_episodes=cfg.eval.episodes)
     c = state.counters
     final = dict(ev, iteration=int(c.iteration), env_steps=int(c.env_steps),
-                 episodes_trained=int(c.episodes), seed=cfg.seed)
+                 episodes_trained=int(c.episodes), seed=cfg.run.seed)
     try:
         with open(os.path.join(run_dir, "eval.json"), "w") as f:
             json.dump(final, f, indent=2)

@@ -29,8 +29,8 @@ import jax
 import jax.numpy as jnp
 
 from dscpp_jax import frontier
-from dscpp_jax.acting import FRONTIER_KEY_SALT, any_seed, chain_metrics, dyn_config, \
-    frontier_candidates, td3_config, value_fn
+from dscpp_jax.acting import FRONTIER_KEY_SALT, any_seed, chain_metrics, frontier_candidates, \
+    value_fn
 from dscpp_jax.config import Config
 from dscpp_jax.dynamics import dynamics_fit_normaliser, dynamics_init, dynamics_train
 from dscpp_jax.her import HERBuffer, her_index, her_relabel, her_sample
@@ -40,6 +40,8 @@ from dscpp_jax.replay import (Replay, Transition, replay_gather, replay_group_in
 from dscpp_jax.subgoals import dp_value_table as _dp_value_table
 from dscpp_jax.td3 import (td3_copy_option, td3_option, td3_set_option, td3_updates,
                            td3_updates_options)
+from dscpp_jax.dynamics import DynamicsConfig
+from dscpp_jax.td3 import TD3Config
 
 GLOBAL_ROW = 0   # the global option's row of the option table (acting.GLOBAL_OPTION)
 
@@ -49,7 +51,7 @@ GLOBAL_ROW = 0   # the global option's row of the option table (acting.GLOBAL_OP
 # ------------------------------------------------------------------------------------------------
 def her_max_segment(config: Config) -> int:
     """The longest HER segment: an option's execution (the episode for the flat algorithms)."""
-    return config.option_timeout if config.hierarchical else config.episode_length
+    return config.chain.option_timeout if config.hierarchical else config.task.episode_length
 
 
 def td3_buffer(config: Config, replay: Replay) -> Any:
@@ -65,9 +67,9 @@ def td3_sample_fn(config: Config, env: Any = None) -> Any:
     max_seg = her_max_segment(config)
 
     def sample_fn(k, buf, n):
-        return her_sample(k, buf, n, strategy=config.her_strategy,
-                          relabel_prob=config.her_relabel_prob, max_segment=max_seg,
-                          goal_tolerance=config.goal_tolerance)
+        return her_sample(k, buf, n, strategy=config.td3.her_strategy,
+                          relabel_prob=config.td3.her_relabel_prob, max_segment=max_seg,
+                          goal_tolerance=config.task.goal_tolerance)
 
     return sample_fn
 
@@ -77,11 +79,11 @@ def update_policies(config: Config, td3, replay: Replay, key, seed_axis=None
     """The iteration's TD3 steps. The shared goal-conditioned TD3 (DSC++): `config.td3_updates`
     steps on HER-relabelled minibatches of the replay. One TD3 per option
     (`config.per_option_td3`): `update_option_policies`. Returns (td3, ``td3/*`` metrics)."""
-    tcfg = td3_config(config)
+    tcfg = TD3Config.from_section(config.td3, config.model_based)
     if config.per_option_td3:
         return update_option_policies(config, td3, replay, key, seed_axis)
     td3, tm = td3_updates(tcfg, td3, td3_buffer(config, replay), key, config.td3_updates,
-                          td3_sample_fn(config), sample_block=config.td3_sample_block,
+                          td3_sample_fn(config), sample_block=config.td3.sample_block,
                           seed_axis=seed_axis)
     return td3, {f"td3/{k}": v for k, v in tm.items()}
 
@@ -92,11 +94,11 @@ def option_steps(config: Config, replay: Replay) -> jax.Array:
     option, whose TD3 learns from every transition (`update_option_policies`). As the authors'
     per-option learners, which take one TD3 step per own transition (``MFOptionClass.py``
     ``experience_replay``: ``self.solver.step``; ``MBOptionClass.py`` ``update_value_function``)."""
-    K = config.max_options
+    K = config.chain.max_options
     ids = replay.data.option
-    new = replay_recent(replay, config.steps_per_iter) & (ids >= 0) & (ids < K)
+    new = replay_recent(replay, config.run.steps_per_iter) & (ids >= 0) & (ids < K)
     n_new = jnp.bincount(jnp.where(new, ids, K).reshape(-1), length=K + 1)[:K]
-    steps = jnp.round(n_new.astype(jnp.float32) * config.td3_updates_per_step).astype(jnp.int32)
+    steps = jnp.round(n_new.astype(jnp.float32) * config.td3.updates_per_step).astype(jnp.int32)
     return steps.at[GLOBAL_ROW].set(0)
 
 
@@ -124,7 +126,7 @@ def option_sample_fns(config: Config, replay: Replay):
     Goal-conditioned per-option policies (``MBOptionClass.py`` ``update_value_function``): HER
     (`td3_sample_fn`) within the option's own segments; the global option relabels every
     transition the same way (the authors step it with the same two goal copies)."""
-    index = replay_group_index(replay, replay.data.option, config.max_options)
+    index = replay_group_index(replay, replay.data.option, config.chain.max_options)
     if config.option_policies == "region":
         def own(k, o, n):
             rows, envs = replay_group_sample_index(replay, index, k, o, n)
@@ -141,9 +143,9 @@ def option_sample_fns(config: Config, replay: Replay):
         k_idx, k_fut, k_rel = jax.random.split(k, 3)
         rows, envs = replay_group_sample_index(replay, index, k_idx, o, n)
         return her_relabel(hb, rows, envs, jax.random.uniform(k_fut, (n,)),
-                           jax.random.uniform(k_rel, (n,)), config.her_strategy,
-                           config.her_relabel_prob, her_max_segment(config),
-                           config.goal_tolerance)
+                           jax.random.uniform(k_rel, (n,)), config.td3.her_strategy,
+                           config.td3.her_relabel_prob, her_max_segment(config),
+                           config.task.goal_tolerance)
     return own_her, lambda k, n: sample(k, hb, n)
 
 
@@ -155,8 +157,8 @@ def update_option_policies(config: Config, td3, replay: Replay, key, seed_axis=N
     steps on minibatches of every transition (`option_sample_fns`): about twice the shared TD3's
     work. Returns (td3, ``td3/*`` metrics of the options' steps, ``td3/global_*`` of the global
     option's)."""
-    tcfg = td3_config(config)
-    block = config.td3_sample_block
+    tcfg = TD3Config.from_section(config.td3, config.model_based)
+    block = config.td3.sample_block
     own, everything = option_sample_fns(config, replay)
     k_own, k_glob = jax.random.split(key)
     rounds = -(-config.td3_updates // block)
@@ -179,10 +181,11 @@ def init_new_options(config: Config, td3, status_before, status_after):
     and ``MFOptionClass.py`` in the versions where it is called; DSC's ``OptionClass.py``
     ``initialize_with_global_ddpg``); "random" leaves them as initialised. The goal option exists
     from the start and is never copied (the authors' parent-None option)."""
-    if not config.per_option_td3 or config.option_init != "copy_global":
+    if not config.per_option_td3 or config.chain.option_init != "copy_global":
         return td3
     created = (status_before == FREE) & (status_after != FREE)
-    return td3_copy_option(td3_config(config), td3, GLOBAL_ROW, created)
+    return td3_copy_option(TD3Config.from_section(config.td3, config.model_based), td3,
+                           GLOBAL_ROW, created)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -190,37 +193,38 @@ def init_new_options(config: Config, td3, status_before, status_after):
 # ------------------------------------------------------------------------------------------------
 def init_dynamics(key, obs_dim: int, act_dim: int, config: Config):
     """A fresh dynamics ensemble for `config`."""
-    return dynamics_init(key, obs_dim, act_dim, dyn_config(config))
+    return dynamics_init(key, obs_dim, act_dim, DynamicsConfig.from_section(config.dynamics))
 
 
 def fit_normaliser(config: Config, dyn, model_replay: Replay):
     """The model's input and output statistics refit on the model replay."""
     obs, act, nxt = model_replay.data
-    return dynamics_fit_normaliser(dyn, obs, act, nxt, model_replay.valid, cfg=dyn_config(config))
+    return dynamics_fit_normaliser(dyn, obs, act, nxt, model_replay.valid,
+                                   cfg=DynamicsConfig.from_section(config.dynamics))
 
 
 def dynamics_updates(config: Config, dyn, model_replay: Replay, key, num_steps: int):
     """`num_steps` Adam steps of the model on the model replay. Returns (dyn, {loss,
     loss_last})."""
     obs, act, nxt = model_replay.data
-    dyn, m = dynamics_train(dyn_config(config), dyn, (obs, act, nxt, model_replay.valid), key,
-                            int(num_steps))
+    dyn, m = dynamics_train(DynamicsConfig.from_section(config.dynamics), dyn,
+                            (obs, act, nxt, model_replay.valid), key, int(num_steps))
     return dyn, {"loss": jnp.mean(m["loss"]), "loss_last": m["loss"][-1]}
 
 
 def update_dynamics(config: Config, dyn, model_replay: Replay, counters, key, key_pretrain,
                     seed_axis=None):
     """The iteration's model steps, and once the warm-up data is in, one longer burst of
-    `config.dyn_pretrain_steps` (the original's 50 epochs on the random rollouts). Returns
+    `config.dynamics.pretrain_steps` (the original's 50 epochs on the random rollouts). Returns
     (dyn, counters with ``warmup_done``, ``dynamics/*`` metrics)."""
-    warmup = counters.episodes < config.warmup_episodes
+    warmup = counters.episodes < config.task.warmup_episodes
     dyn = fit_normaliser(config, dyn, model_replay)
     dyn, dm = dynamics_updates(config, dyn, model_replay, key, config.dyn_updates)
     do_pre = (~warmup) & (~counters.warmup_done)
-    if config.dyn_pretrain_steps > 0:
+    if config.dynamics.pretrain_steps > 0:
         def pretrain(d):
             new = dynamics_updates(config, d, model_replay, key_pretrain,
-                                   config.dyn_pretrain_steps)[0]
+                                   config.dynamics.pretrain_steps)[0]
             return jax.tree_util.tree_map(lambda a, b: jnp.where(do_pre, a, b), new, d)
         dyn = jax.lax.cond(any_seed(do_pre, seed_axis), pretrain, lambda d: d, dyn)
     counters = counters.replace(warmup_done=counters.warmup_done | do_pre)
@@ -248,25 +252,25 @@ def dp_value_table(config: Config, chain, td3):
     """Algorithm 1's value table over the chain, valued with the shared critic or each option's
     own (`subgoals.dp_value_table`)."""
     if not config.per_option_td3:
-        return _dp_value_table(chain, value_fn(config, td3), gamma=config.mpc_discount)
+        return _dp_value_table(chain, value_fn(config, td3), gamma=config.mpc.discount)
     # each option's row of the table is valued with its own critic
-    return _dp_value_table(chain, None, gamma=config.mpc_discount,
+    return _dp_value_table(chain, None, gamma=config.mpc.discount,
                            option_value_fn=lambda k, s, g: value_fn(config, td3, k)(s, g))
 
 
 def update_chain(config: Config, env, chain, td3, dp_table, key, seed_axis=None):
-    """Refit, grow (with the frontier's parents when `config.frontier_parent` is set; its
+    """Refit, grow (with the frontier's parents when `config.frontier.parent` is set; its
     candidates drawn with `key` folded with `FRONTIER_KEY_SALT`) and, for DP subgoals, rebuild
     the value table. Returns (chain, dp_table, ``frontier/*`` and ``options/*`` metrics)."""
     metrics: Dict[str, jax.Array] = {}
     start = jnp.asarray(env.start, jnp.float32)
     chain = refit(config, chain, seed_axis)
-    if config.frontier_parent:
+    if config.frontier.parent:
         cand = frontier_candidates(config, env, jax.random.fold_in(key, FRONTIER_KEY_SALT))
         chain = mature_options(chain)
         # growth leaves mature rows as they are, so this holds for the grown chain too
-        is_open = frontier.open_rows(frontier.frontier_probe(chain, cand, config.frontier_radius),
-                                     config.frontier_min_open)
+        is_open = frontier.open_rows(frontier.frontier_probe(chain, cand, config.frontier.radius),
+                                     config.frontier.min_open)
         g0, p0 = frontier.gestation_row(chain), chain.parent
         chain = grow_chain(config, chain, start, is_open)
         g = frontier.gestation_row(chain)

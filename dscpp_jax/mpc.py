@@ -45,6 +45,7 @@ import numpy as np
 from jax.experimental import pallas as pl
 from jax.experimental.pallas import triton as plgpu
 
+from dscpp_jax.config import MPCSection
 from dscpp_jax.dynamics import DynamicsConfig, DynamicsState, FoldedDynamics, dynamics_fold
 from dscpp_jax.networks import Actor, TwinCritic, actor_action_dim
 
@@ -118,6 +119,15 @@ class MPCConfig:
     value_chunk: int = 128
     kernel_rng: bool = True
     join_input: Optional[bool] = None
+
+    @classmethod
+    def from_section(cls, section: MPCSection, goal_tolerance: float,
+                     use_value: bool) -> "MPCConfig":
+        """The controller a run config's `mpc` section sets, with the task's goal tolerance and
+        whether the learner adds the value term."""
+        return cls(num_samples=section.samples, horizon=section.horizon,
+                   discount=section.discount, goal_tolerance=goal_tolerance,
+                   use_value=use_value, compute_dtype=section.dtype, backend=section.backend)
 
     def __post_init__(self):
         if self.num_samples < 1 or self.horizon < 1:

@@ -51,6 +51,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from dscpp_jax import initiation, svm
+from dscpp_jax.config import ChainSection
 
 FREE = 0
 GESTATION = 1
@@ -118,6 +119,19 @@ class ChainConfig:
 
     def replace(self, **kw: Any) -> "ChainConfig":
         return dataclasses.replace(self, **kw)
+
+    @classmethod
+    def from_section(cls, section: ChainSection, *, variant: str, initiation_period: int,
+                     goal_tolerance: float, obs_dim: int) -> "ChainConfig":
+        """The skill chain a run config's `chain` section sets, with what the run's other
+        settings decide: the classifier `variant`, the `initiation_period` in effect, the goal
+        tolerance (also the subgoals') and the env's observation size."""
+        return cls(max_options=section.max_options, gestation=section.gestation,
+                   initiation_period=initiation_period, buffer_len=section.buffer_len,
+                   option_timeout=section.option_timeout, max_pos_traj=section.max_pos_traj,
+                   max_neg=section.max_neg, variant=variant, goal_tolerance=goal_tolerance,
+                   subgoal_tolerance=goal_tolerance, obs_dim=obs_dim,
+                   svm_gamma=section.svm_gamma, svm_backend=section.svm_backend)
 
 
 @struct.dataclass

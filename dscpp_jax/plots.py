@@ -73,7 +73,7 @@ def plot_trajectory(cfg, result, path: str, title: str = "", max_episodes: int =
     fails, wins = np.flatnonzero(~succ_e), np.flatnonzero(succ_e)
     n_f = min(len(fails), max(max_episodes // 2, max_episodes - len(wins)))
     drawn = list(fails[:n_f]) + list(wins[:max_episodes - n_f])
-    K = int(cfg.max_options)
+    K = int(cfg.chain.max_options)
     cmap = plt.get_cmap("tab10" if K <= 10 else "tab20")
     fig, ax = plt.subplots(figsize=(7.6, 6))
     _draw_maze(ax, _layout(cfg))
@@ -182,7 +182,7 @@ def _group_runs(run_dirs: Sequence[str]) -> dict:
         try:
             # fields added after a run was made take their defaults, the value that run used
             payload = read_config(r)
-            full = Config.from_dict(payload["config"]).to_dict()
+            full = Config.from_dict(payload["config"]).flat()
             c = {k: v for k, v in full.items() if k not in HOST_ONLY_DEFAULTS}
             # the env's own settings (physics), where the run recorded them
             c.update({f"env.{k}": v for k, v in payload.get("env", {}).items()})
@@ -375,7 +375,7 @@ def plot_runs(run_dirs: Sequence[str], out_dir: str, with_state: bool = True,
                       f"trajectories come from a checkpoint)", file=sys.stderr)
                 continue
             if trajectory:
-                _, res = evaluate(state, jax.random.PRNGKey(0), max(4, cfg.eval_episodes))
+                _, res = evaluate(state, jax.random.PRNGKey(0), max(4, cfg.eval.episodes))
                 it = int(state.counters.iteration)
                 paths.append(plot_trajectory(
                     cfg, res, os.path.join(out_dir, f"{tag}trajectory.png"),
@@ -417,6 +417,6 @@ def plot_group(group_dir: str, cfgs, dirs, host, res) -> None:
         out = os.path.join(d, "plots")
         plot_curves([d], os.path.join(out, "curves.png"))
         plot_trajectory(cfg, SG.index_tree(res, i), os.path.join(out, "trajectory.png"),
-                        title=f"{cfg.env} {cfg.algo} seed {cfg.seed}, iteration "
+                        title=f"{cfg.env} {cfg.algo} seed {cfg.run.seed}, iteration "
                               f"{int(c.iteration[i])}, {int(c.env_steps[i])} env steps")
         plot_classifiers(cfg, SG.index_tree(host, i, n), os.path.join(out, "classifiers.png"))

@@ -31,7 +31,7 @@ import jax.numpy as jnp
 from dscpp_jax import checkpoint as ck
 from dscpp_jax import seed_group as SG
 from dscpp_jax import trainer as T
-from dscpp_jax.config import Config
+from dscpp_jax.config import Config, flat_config
 from dscpp_jax.run_logging import RunDirError, load_config, read_config, read_metrics
 
 LOCK_FILE = ".lock"
@@ -176,16 +176,16 @@ def group_of(run_dir: str) -> Optional[tuple]:
 def default_run_dir(cfg: Config, root: str = "runs") -> str:
     """runs/<env>-<algo>-s<seed>-<time>: where a fresh run goes without --run-dir."""
     stamp = time.strftime("%Y%m%d-%H%M%S")
-    return os.path.join(root, f"{cfg.env}-{cfg.algo}-s{cfg.seed}-{stamp}")
+    return os.path.join(root, f"{cfg.env}-{cfg.algo}-s{cfg.run.seed}-{stamp}")
 
 
 def saved_config(run_dir: str) -> Optional[dict]:
-    """The config saved in a run's config.json or a group's group.json, read without touching
-    JAX; None when there is none to read."""
+    """The config saved in a run's config.json or a group's group.json as {flat name: value}
+    (`config.flat_config`), read without touching JAX; None when there is none to read."""
     for name in ("config.json", GROUP_FILE):
         try:
             with open(os.path.join(run_dir, name)) as f:
-                return dict(json.load(f)["config"])
+                return flat_config(dict(json.load(f)["config"]))
         except (OSError, ValueError, KeyError, TypeError):
             continue
     return None
@@ -237,7 +237,7 @@ def load_run(run_dir: str, step: Optional[int] = None):
                          f"{os.path.join(run_dir, 's%d' % read_group(run_dir)['seeds'][0])}")
     cfg = load_config(run_dir)
     try:
-        state = ck.restore_state(run_dir, T.init(jax.random.PRNGKey(cfg.seed), cfg), step)
+        state = ck.restore_state(run_dir, T.init(jax.random.PRNGKey(cfg.run.seed), cfg), step)
     except ck.NoCheckpointError as e:
         raise ck.NoCheckpointError(f"run {run_dir} has no checkpoint to load ({e})") from None
     return cfg, state

@@ -145,7 +145,7 @@ def gpu_visible() -> Optional[str]:
 
 def physics_line(cfg: Config) -> str:
     """The line an ant run prints about its physics back end and JAX's platform."""
-    return (f"{cfg.env}: {'MuJoCo Warp' if cfg.physics == 'warp' else 'MJX (JAX)'} physics on "
+    return (f"{cfg.env}: {'MuJoCo Warp' if cfg.task.physics == 'warp' else 'MJX (JAX)'} physics on "
             f"{jax.default_backend().upper()}")
 
 

@@ -423,7 +423,7 @@ def evaluate_group(states: T.TrainState, key: Optional[jax.Array] = None,
     if starts is not None:
         starts = np.asarray(starts, np.float32).reshape(-1, 2)
         num_episodes = int(starts.shape[0])
-    num_episodes = int(num_episodes or cfg.eval_episodes)
+    num_episodes = int(num_episodes or cfg.eval.episodes)
     treedef, specs = _spec_key(states, n)
     states = _put(states, mesh, n)
     rep = NamedSharding(mesh, P())

@@ -32,6 +32,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
+from dscpp_jax.config import TD3Section
 from dscpp_jax.networks import Actor, QNetwork, TwinCritic, actor_action_dim, first_head
 from dscpp_jax.replay import Transition
 
@@ -122,6 +123,26 @@ class TD3Config:
         )
         kw.update(overrides)
         return cls(**kw)
+
+    @classmethod
+    def from_section(cls, section: TD3Section, model_based: bool) -> "TD3Config":
+        """The TD3 (+ HER) learner a run config's `td3` section sets: the paper's table 1
+        (`model_based`) or 2 with the section's sizes, rates and exploration."""
+        lr = section.effective_lr(model_based)
+        kw = dict(batch_size=section.batch_size, hidden=(section.hidden, section.hidden),
+                  discount=section.discount, exploration_noise=section.action_noise,
+                  replay_capacity=section.replay_capacity, actor_lr=lr, critic_lr=lr,
+                  action_l2=section.action_l2, compute_dtype=section.dtype)
+        if section.clip_targets:   # the value range under the 0 / -1 reward
+            kw.update(target_range=(-1.0 / (1.0 - section.discount), 0.0))
+        if section.random_action_prob >= 0:
+            kw.update(random_action_prob=section.random_action_prob)
+            if model_based:
+                kw.update(random_action_prob_start=section.random_action_prob)
+        if not model_based:
+            kw.update(random_action_prob_start=section.mf_initial_random_prob,
+                      random_action_switch_successes=section.mf_random_decay_successes)
+        return (cls.model_based if model_based else cls.model_free)(**kw)
 
     @classmethod
     def model_free(cls, **overrides) -> "TD3Config":
@@ -511,7 +532,7 @@ def td3_updates(
 
 
 # ------------------------------------------------------------------------------------------------
-# One TD3 per option (``Config.shared_critic=False``)
+# One TD3 per option (``Config.td3.shared_critic=False``)
 # ------------------------------------------------------------------------------------------------
 def td3_init_per_option(key: jax.Array, num_options: int, obs_dim: int, goal_dim: int,
                         action_dim: int, cfg: TD3Config) -> TD3State:

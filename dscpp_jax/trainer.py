@@ -24,7 +24,7 @@ the learning phase does in `dscpp_jax.learning`; this module holds the state, th
    negatives: the start); transitions go to the HER replay (and the model replay);
 5. finished episodes restart, from a diverse start once warm-up is over.
 
-In-band evaluation (`Config.inband_eval_envs` = E > 0): E more environments run evaluation
+In-band evaluation (`Config.eval.inband_envs` = E > 0): E more environments run evaluation
 episodes from the task start in the same scan, stepped in one physics batch of B + E with the
 training environments (`envs.goal_env.join_states`; with `inband_eval_batched` off, by a second
 vmapped step). They act with evaluation's deterministic policy (`acting.inband_act`), as of the
@@ -45,13 +45,13 @@ import jax.numpy as jnp
 
 from dscpp_jax import envs
 from dscpp_jax import acting, learning
-# GLOBAL_OPTION, GOAL_OPTION, dyn_config and mpc_config are re-exported: part of trainer's API
+# GLOBAL_OPTION and GOAL_OPTION are re-exported: part of trainer's API
 from dscpp_jax.acting import (FRONTIER_KEY_SALT, GLOBAL_OPTION, GOAL_OPTION, NO_OPTION,  # noqa
                               ExecState, InbandState, all_seeds, any_seed, choose_options,
-                              diverse_starts, dyn_config, exec_init, frontier_pool, inband_act,
-                              inband_metrics, inband_record, mpc_config, option_end,
+                              diverse_starts, exec_init, frontier_pool, inband_act,
+                              inband_metrics, inband_record, option_end,
                               options_terminate, policy_actions, push_traj,
-                              random_action_probs, record_outcomes, td3_config)
+                              random_action_probs, record_outcomes)
 from dscpp_jax.config import Config
 from dscpp_jax.learning import td3_buffer, td3_sample_fn  # noqa: F401  (re-exported)
 from dscpp_jax.options import ChainConfig, chain_init
@@ -61,6 +61,7 @@ from dscpp_jax.td3 import TD3State, td3_init, td3_init_per_option, td3_random_pr
 from dscpp_jax.envs.ant_maze import warp_available
 from dscpp_jax.envs.goal_env import join_states, select_state, select_states, split_states
 from dscpp_jax.envs.goals import goal_reached
+from dscpp_jax.td3 import TD3Config
 
 PyTree = Any
 
@@ -113,7 +114,7 @@ device mesh's axis is `seed_group.SEED_AXIS`)."""
 def resolve_physics(config: Config) -> Config:
     """`config` with ``physics="auto"`` made concrete: MuJoCo Warp on a GPU where `warp-lang` is
     installed, MJX-JAX elsewhere (point-mass envs: "jax", they have no MuJoCo physics)."""
-    if config.physics != "auto":
+    if config.task.physics != "auto":
         return config
     if config.env.startswith("point_"):
         return config.override(physics="jax")
@@ -127,9 +128,9 @@ def make_env(config: Config, worlds: Optional[int] = None):
     ``group_size * num_envs``)."""
     config = resolve_physics(config)
     if worlds is None:
-        worlds = config.group_size * config.num_envs
-    return _make_env(config.env, config.episode_length, config.goal_tolerance,
-                     config.ant_integrator, config.physics, int(worlds))
+        worlds = config.run.group_size * config.run.num_envs
+    return _make_env(config.env, config.task.episode_length, config.task.goal_tolerance,
+                     config.task.ant_integrator, config.task.physics, int(worlds))
 
 
 @functools.lru_cache(maxsize=None)
@@ -149,26 +150,27 @@ def _build_env(name, episode_length, goal_tolerance, integrator, physics, worlds
 
 def inband_batched(config: Config) -> bool:
     """Whether the in-band envs step in one batch with the training envs (one physics call over
-    B + E worlds, `envs.goal_env.join_states`): `Config.inband_eval_batched`. Otherwise they take
+    B + E worlds, `envs.goal_env.join_states`): `Config.eval.inband_batched`. Otherwise they take
     a second physics call of their own each step."""
-    return config.inband_eval_batched
+    return config.eval.inband_batched
 
 
 def inband_env(config: Config):
     """The env that resets the in-band envs (on MuJoCo Warp one whose shared contact buffers are
     sized for ``group_size * inband_eval_envs`` worlds, so that the in-band batch keeps its own)."""
-    return make_env(config, worlds=config.group_size * config.inband_eval_envs)
+    return make_env(config, worlds=config.run.group_size * config.eval.inband_envs)
 
 
 def joint_env(config: Config):
     """The env that steps training and in-band envs together (`inband_batched`): sized for
     ``group_size * (num_envs + inband_eval_envs)`` worlds."""
-    return make_env(config, worlds=config.group_size * (config.num_envs + config.inband_eval_envs))
+    return make_env(config, worlds=config.run.group_size
+                    * (config.run.num_envs + config.eval.inband_envs))
 
 
 def step_env(config: Config):
     """The env whose physics step `train_step` runs (sized for every world it steps at once)."""
-    if config.inband_eval_envs > 0 and inband_batched(config):
+    if config.eval.inband_envs > 0 and inband_batched(config):
         return joint_env(config)
     return make_env(config)
 
@@ -204,12 +206,12 @@ def prewarm_physics(config: Config) -> Optional[threading.Thread]:
     uses is built before the thread starts. A failure here is left for the real step to report."""
     config = resolve_physics(config)
     workers = warp_build_workers()   # a bad setting is an error wherever it is read
-    if config.physics != "warp" or config.env.startswith("point_") or jax.default_backend() != "gpu":
+    if config.task.physics != "warp" or config.env.startswith("point_") or jax.default_backend() != "gpu":
         return None
     # built here, before the thread: the env cache is no lock, and building an env allocates
     # MuJoCo Warp data
     make_env(config)
-    if config.inband_eval_envs > 0:
+    if config.eval.inband_envs > 0:
         inband_env(config)
     env = step_env(config)
 
@@ -236,17 +238,6 @@ def observation_size(config: Config) -> int:
 def action_size(config: Config) -> int:
     """The action size of `config`'s env."""
     return int(make_env(config).action_size)
-
-
-def chain_config(config: Config) -> ChainConfig:
-    """The skill chain's static sizes and classifier settings of `config`."""
-    return ChainConfig(max_options=config.max_options, gestation=config.gestation,
-                       initiation_period=config.effective_initiation_period,
-                       buffer_len=config.buffer_len, option_timeout=config.option_timeout,
-                       max_pos_traj=config.max_pos_traj, max_neg=config.max_neg,
-                       variant=config.classifier_variant, goal_tolerance=config.goal_tolerance,
-                       subgoal_tolerance=config.goal_tolerance, obs_dim=observation_size(config),
-                       svm_gamma=config.svm_gamma, svm_backend=config.svm_backend)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -286,38 +277,44 @@ def init_impl(key: jax.Array, config: Config) -> TrainState:
     """Un-jitted `init` (for use inside other traced code)."""
     config = resolve_physics(config).device_view()
     env = make_env(config)
-    B, od, ad = config.num_envs, env.observation_size, env.action_size
+    B, od, ad = config.run.num_envs, env.observation_size, env.action_size
     k_env, k_td3, k_dyn, k_run = jax.random.split(key, 4)
     env_state = jax.vmap(env.reset)(jax.random.split(k_env, B))
     goal = jnp.asarray(env.goal, jnp.float32)
     ex = exec_init(config, env_state.obs, env.goal)
     region = config.option_policies == "region"
     if not config.per_option_td3:
-        td3 = td3_init(k_td3, od, 2, ad, td3_config(config))
+        td3 = td3_init(k_td3, od, 2, ad, TD3Config.from_section(config.td3, config.model_based))
     else:   # one TD3 per option slot: every leaf gets a leading (max_options,) axis; region
         # policies see the observation alone (no goal input)
-        td3 = td3_init_per_option(k_td3, config.max_options, od, 0 if region else 2, ad,
-                                  td3_config(config))
+        td3 = td3_init_per_option(k_td3, config.chain.max_options, od, 0 if region else 2, ad,
+                                  TD3Config.from_section(config.td3, config.model_based))
     example = dict(obs=jnp.zeros((od,), jnp.float32), action=jnp.zeros((ad,), jnp.float32),
                    next_obs=jnp.zeros((od,), jnp.float32), goal=jnp.zeros((2,), jnp.float32),
                    seg_id=jnp.zeros((), jnp.int32),
                    option=jnp.zeros((), jnp.int32) if config.per_option_td3 else None)
     example = (RegionStep(**example, in_target=jnp.zeros((), bool), at_goal=jnp.zeros((), bool))
                if region else TrajStep(**example))
-    replay = replay_init(example, config.replay_capacity, B)
+    replay = replay_init(example, config.td3.replay_capacity, B)
     if config.model_based:
         dyn = learning.init_dynamics(k_dyn, od, ad, config)
         model_replay = replay_init((jnp.zeros((od,)), jnp.zeros((ad,)), jnp.zeros((od,))),
-                                   config.model_capacity, B)
+                                   config.dynamics.capacity, B)
     else:
         dyn, model_replay = None, None
-    chain = chain_init(chain_config(config), goal) if config.hierarchical else None
+    if config.hierarchical:
+        chain = chain_init(ChainConfig.from_section(
+            config.chain, variant=config.classifier_variant,
+            initiation_period=config.effective_initiation_period,
+            goal_tolerance=config.task.goal_tolerance, obs_dim=observation_size(config)), goal)
+    else:
+        chain = None
     dp_table = dp_table_init(chain) if (config.hierarchical and config.subgoal == "dp") else None
     z = jnp.zeros((), jnp.int32)
     counters = Counters(env_steps=z, episodes=z, iteration=z, episode_successes=z,
                         option_successes=z, warmup_done=jnp.zeros((), bool))
     inband = inband_init(jax.random.fold_in(key, INBAND_KEY_SALT), config) \
-        if config.inband_eval_envs > 0 else None
+        if config.eval.inband_envs > 0 else None
     return TrainState(env_state=env_state, exec=ex, chain=chain, td3=td3, dyn=dyn, replay=replay,
                       model_replay=model_replay, dp_table=dp_table, counters=counters, key=k_run,
                       config=config, inband=inband)
@@ -327,7 +324,7 @@ def inband_init(key: jax.Array, config: Config) -> InbandState:
     """E in-band envs at the task start, reset exactly as `evaluate_episodes(state, key, E)`
     resets its episodes; nothing finished yet."""
     env = inband_env(config)
-    E, K = config.inband_eval_envs, config.inband_window
+    E, K = config.eval.inband_envs, config.inband_window
     k_reset, _ = jax.random.split(key)
     es = jax.vmap(env.reset)(jax.random.split(k_reset, E))
     z = jnp.zeros((), jnp.int32)
@@ -344,15 +341,15 @@ init_jit = jax.jit(init_impl, static_argnames=("config",))
 # Algorithm 2: the rollout (acting in B environments for T steps)
 # ------------------------------------------------------------------------------------------------
 def rollout(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[str, jax.Array]]:
-    """Algorithm 2's ROLLOUT over `config.steps_per_iter` steps of the `num_envs` training envs
+    """Algorithm 2's ROLLOUT over `config.run.steps_per_iter` steps of the `num_envs` training envs
     (and the in-band evaluation envs), one `lax.scan`: choose options and subgoals, act, step,
     end options, record their outcomes in the chain, push transitions to the replays, restart
     finished episodes. Returns (state, ``train/*``, ``frontier/pool`` and ``inband/*`` metrics)."""
     config = state.config
     env = make_env(config)
-    B = config.num_envs
-    warmup = state.counters.episodes < config.warmup_episodes
-    tcfg = td3_config(config)
+    B = config.run.num_envs
+    warmup = state.counters.episodes < config.task.warmup_episodes
+    tcfg = TD3Config.from_section(config.td3, config.model_based)
     n_succ = state.counters.option_successes if config.hierarchical else state.counters.episode_successes
     rand_prob = td3_random_prob(tcfg, n_succ)
     region = config.option_policies == "region"
@@ -365,7 +362,7 @@ def rollout(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[st
     # frontier starts (beyond the paper, dscpp_jax.frontier): candidates next to the region that
     # the link in gestation targets, fixed for the iteration (the chain changes between them)
     front = None
-    if config.hierarchical and config.frontier_start_prob > 0:
+    if config.hierarchical and config.frontier.start_prob > 0:
         front = frontier_pool(config, env, state.chain, jax.random.fold_in(key, FRONTIER_KEY_SALT))
 
     def body(carry, k):
@@ -397,7 +394,7 @@ def rollout(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[st
             if inband_batched(config):   # one physics batch of B + E envs
                 j_env = step_env(config)
                 like = jax.eval_shape(jax.vmap(j_env.reset),
-                                      jax.random.split(k_reset, B + config.inband_eval_envs))
+                                      jax.random.split(k_reset, B + config.eval.inband_envs))
                 both = jax.vmap(j_env.step)(join_states(es, ib.env_state, like),
                                             jnp.concatenate([acts, ib_acts], axis=0))
                 nes, ib_nes = split_states(both, es, ib.env_state)
@@ -428,7 +425,7 @@ def rollout(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[st
             step = RegionStep(**step,
                               in_target=options_terminate(config, chain, ex.option, next_xy,
                                                           goal_xy),
-                              at_goal=goal_reached(next_xy, goal_xy, config.goal_tolerance))
+                              at_goal=goal_reached(next_xy, goal_xy, config.task.goal_tolerance))
         else:
             step = TrajStep(**step)
         replay = replay_add(replay, step, ~nan)
@@ -454,18 +451,18 @@ def rollout(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[st
         # RESTART FINISHED EPISODES (diverse starts after warm-up). Whether the warm-up is over
         # counts the episodes finished up to this step: the envs' first episodes all end on one
         # step, and the episodes they begin there are the first after the warm-up
-        warm_next = state.counters.episodes + acc["episodes"] < config.warmup_episodes
+        warm_next = state.counters.episodes + acc["episodes"] < config.task.warmup_episodes
 
         def reset_all(_):
             ks = jax.random.split(k_reset, B)
-            if config.diverse_starts:
+            if config.task.diverse_starts:
                 starts = diverse_starts(config, env, k_start, B, front)
                 fresh_div = jax.vmap(env.reset_at)(ks, starts)
                 fresh_task = jax.vmap(env.reset)(ks)
                 fresh = select_state(warm_next, fresh_task, fresh_div)
-                if config.task_start_prob > 0:
+                if config.task.start_prob > 0:
                     at_task = (jax.random.uniform(jax.random.fold_in(k_start, 1), (B,))
-                               < config.task_start_prob)
+                               < config.task.start_prob)
                     fresh = select_states(at_task, fresh_task, fresh)
             else:
                 fresh = jax.vmap(env.reset)(ks)
@@ -481,13 +478,13 @@ def rollout(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[st
         acc0["random_prob_sum"] = jnp.zeros((), jnp.float32)
     carry = (state.env_state, state.exec, state.chain, state.replay, state.model_replay, acc0,
              state.inband)
-    carry, _ = jax.lax.scan(body, carry, jax.random.split(key, config.steps_per_iter))
+    carry, _ = jax.lax.scan(body, carry, jax.random.split(key, config.run.steps_per_iter))
     es, ex, chain, replay, model_replay, acc, inband = carry
 
     # COUNTERS AND METRICS
     c = state.counters
     counters = c.replace(
-        env_steps=c.env_steps + B * config.steps_per_iter,
+        env_steps=c.env_steps + B * config.run.steps_per_iter,
         episodes=c.episodes + acc["episodes"],
         episode_successes=c.episode_successes + acc["episode_successes"],
         option_successes=c.option_successes + acc["option_successes"],
@@ -507,11 +504,11 @@ def rollout(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[st
         "train/nan_physics_steps": acc["nan_episodes"].astype(jnp.float32),
         # share of the training envs' steps that ended with the body on its back (the ant;
         # 0 for point masses): the paper's ant lies there until its episode ends
-        "train/on_back_share": acc["on_back_steps"].astype(jnp.float32) / (B * config.steps_per_iter),
+        "train/on_back_share": acc["on_back_steps"].astype(jnp.float32) / (B * config.run.steps_per_iter),
         "train/physics_overflow_steps": acc["overflow_steps"].astype(jnp.float32),
         "train/warmup": warmup.astype(jnp.float32),
         # per-option exploration: the mean over this iteration's steps and envs
-        "train/random_action_prob": (acc["random_prob_sum"] / config.steps_per_iter
+        "train/random_action_prob": (acc["random_prob_sum"] / config.run.steps_per_iter
                                      if config.exploration_per_option else rand_prob),
     }
     if front is not None:

@@ -582,7 +582,7 @@ def record_run(cfg, state, episodes: int = 1, starts=None, seed: int = 0,
     res = rollout(state, jax.random.PRNGKey(seed), episodes, starts, max_steps)
     meta = {"env": cfg.env, "algo": cfg.algo, "iteration": int(state.counters.iteration),
             "env_steps": int(state.counters.env_steps), "seed": seed,
-            "max_options": int(cfg.max_options)}
+            "max_options": int(cfg.chain.max_options)}
     return episodes_from_result(res), meta
 
 

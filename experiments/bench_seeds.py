@@ -44,7 +44,7 @@ def bench_one(cfg, n: int, iters: int, num_devices: int = 0) -> dict:
     mesh = SG.seed_mesh(devices[:num_devices] if num_devices else devices)
     from dscpp_jax.trainer import resolve_physics
     rec = {"algo": cfg.algo, "N": n, "devices": int(mesh.size),
-           "physics": resolve_physics(cfg).physics}
+           "physics": resolve_physics(cfg).task.physics}
     try:
         SG.check_group_size(n, mesh)
         t0 = time.perf_counter()

@@ -62,9 +62,9 @@ def run_case(env, algo, physics, n_seeds, iters, overrides, repeat):
         times.append(time.perf_counter() - t0)
         ms.append(m)
     it_s = statistics.median(times[1:] if len(times) > 1 else times)
-    steps = n_seeds * cfg.num_envs * cfg.steps_per_iter
-    out = dict(env=env, algo=algo, physics=cfg.physics, seeds=n_seeds, num_envs=cfg.num_envs,
-               steps_per_iter=cfg.steps_per_iter, compile_s=t_compile, iteration_s=it_s,
+    steps = n_seeds * cfg.run.num_envs * cfg.run.steps_per_iter
+    out = dict(env=env, algo=algo, physics=cfg.task.physics, seeds=n_seeds, num_envs=cfg.run.num_envs,
+               steps_per_iter=cfg.run.steps_per_iter, compile_s=t_compile, iteration_s=it_s,
                iteration_times=times, env_steps_per_s=steps / it_s,
                env_steps_per_s_per_seed=steps / it_s / n_seeds,
                overflow_steps=float(np.sum([np.sum(np.asarray(m["train/physics_overflow_steps"]))

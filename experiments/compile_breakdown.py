@@ -68,8 +68,8 @@ def main(argv=None) -> int:
     t["later_calls_s"] = calls[1:]
     t["first_launch_extra_s"] = calls[0] - (min(calls[1:]) if len(calls) > 1 else 0.0)
     t["process_s"] = time.time() - T0
-    out = {"env": a.env, "algo": a.algo, "physics": cfg.physics, "prewarm": thread is not None,
-           "inband_eval_envs": cfg.inband_eval_envs, "device": str(jax.devices()[0].device_kind),
+    out = {"env": a.env, "algo": a.algo, "physics": cfg.task.physics, "prewarm": thread is not None,
+           "inband_eval_envs": cfg.eval.inband_envs, "device": str(jax.devices()[0].device_kind),
            "jax": jax.__version__, "seconds": {k: (round(v, 2) if isinstance(v, float) else
                                                     [round(x, 2) for x in v]) for k, v in t.items()}}
     print(json.dumps(out, indent=1))

@@ -47,6 +47,7 @@ import platform
 import statistics
 import sys
 import time
+from dscpp_jax.td3 import TD3Config
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 if ROOT not in sys.path:
@@ -176,9 +177,9 @@ def profile(cfg, n: int, reps: int, variants=(), parts=DEFAULT_PARTS, trace: boo
     treedef, specs = SG._spec_key(states, n)
     axes = SG._vmap_axes(treedef, specs)
     keys = jax.random.split(jax.random.PRNGKey(1), n)
-    B, Tn = gcfg.num_envs, gcfg.steps_per_iter
+    B, Tn = gcfg.run.num_envs, gcfg.run.steps_per_iter
     out = {"N": n, "num_envs": B, "steps_per_iter": Tn, "td3_updates": gcfg.td3_updates,
-           "td3_batch_size": gcfg.td3_batch_size, "td3_sample_block": gcfg.td3_sample_block,
+           "td3_batch_size": gcfg.td3.batch_size, "td3_sample_block": gcfg.td3.sample_block,
            "first_call_s": {}}
     want = (lambda name: name in parts)
 
@@ -223,12 +224,12 @@ def profile(cfg, n: int, reps: int, variants=(), parts=DEFAULT_PARTS, trace: boo
     if want("learn"):
         record("learn", over_seeds(lambda s, k: T.learn(s, k, A), (axes, 0), (axes, 0)),
                states, keys)
-    tcfg, sample = T.td3_config(gcfg), T.td3_sample_fn(gcfg, env)
+    tcfg, sample = TD3Config.from_section(gcfg.td3, gcfg.model_based), T.td3_sample_fn(gcfg, env)
 
     def td3_fn(tc=tcfg, sample_fn=sample):
         return over_seeds(lambda td3, rep, k: td3_updates(
             tc, td3, T.td3_buffer(gcfg, rep), k, gcfg.td3_updates, sample_fn,
-            sample_block=gcfg.td3_sample_block,
+            sample_block=gcfg.td3.sample_block,
             seed_axis=A), 0, 0)
 
     if want("td3"):
@@ -245,7 +246,7 @@ def profile(cfg, n: int, reps: int, variants=(), parts=DEFAULT_PARTS, trace: boo
                                        jax.tree_util.tree_map(
                                            lambda x: jnp.concatenate([x] * (m // tcfg.batch_size)),
                                            b),
-                                       sample_block=gcfg.td3_sample_block, seed_axis=A)
+                                       sample_block=gcfg.td3.sample_block, seed_axis=A)
                 fn = over_seeds(f, 0, 0)
                 args = (states.td3, fixed, keys)
             elif v == "bf16_compute":

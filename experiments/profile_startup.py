@@ -92,7 +92,7 @@ def main(argv=None) -> dict:
 
     with phase("env build"):
         T.make_env(cfg)
-    key = jax.random.PRNGKey(cfg.seed)
+    key = jax.random.PRNGKey(cfg.run.seed)
     if args.until == "init":
         with phase("init (compile or cache load, run)"):
             jax.block_until_ready(T.init(key, cfg))
@@ -102,14 +102,14 @@ def main(argv=None) -> dict:
     total = time.time() - T_PROCESS
     last = "second iteration" if args.until is None else f"train_step {args.until}" \
         if args.until == "lower" else args.until
-    out = {"env": args.env, "algo": args.algo, "preset": args.preset, "physics": cfg.physics,
+    out = {"env": args.env, "algo": args.algo, "preset": args.preset, "physics": cfg.task.physics,
            "deterministic_ops": deterministic,
            "backend": jax.default_backend(), "device": str(devices[0].device_kind),
            "jax": jax.__version__, "compile_cache": cache,
            "phases_s": {k: round(v, 3) for k, v in phases.items()},
            f"process to end of {last}_s": round(total, 3)}
     w = max(len(k) for k in phases)
-    print(f"{args.env} {args.algo} ({cfg.physics} physics, {out['device']}, cache {cache})")
+    print(f"{args.env} {args.algo} ({cfg.task.physics} physics, {out['device']}, cache {cache})")
     for k, v in phases.items():
         print(f"  {k:<{w}}  {v:7.2f} s")
     print(f"  {'process start to end of ' + last:<{w}}  {total:7.2f} s")

@@ -35,6 +35,7 @@ import platform
 import statistics
 import sys
 import time
+from dscpp_jax.td3 import TD3Config
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 if ROOT not in sys.path:
@@ -89,7 +90,7 @@ def profile(env_name: str, algo: str, B: int, overrides: dict, reps: int,
 
     cfg = preset("fast", env_name, algo, num_envs=B, **overrides).validate()
     env = T.make_env(cfg)
-    Tn = cfg.steps_per_iter
+    Tn = cfg.run.steps_per_iter
     t0 = time.perf_counter()
     state = T.init(jax.random.PRNGKey(0), cfg)
     jax.block_until_ready(state)
@@ -104,7 +105,7 @@ def profile(env_name: str, algo: str, B: int, overrides: dict, reps: int,
         state, m = T.train_step(state)
     jax.block_until_ready(state)
     post = state.replace(counters=state.counters.replace(
-        episodes=jnp.maximum(state.counters.episodes, cfg.warmup_episodes),
+        episodes=jnp.maximum(state.counters.episodes, cfg.task.warmup_episodes),
         warmup_done=jnp.asarray(True)))
 
     @jax.jit
@@ -134,15 +135,15 @@ def profile(env_name: str, algo: str, B: int, overrides: dict, reps: int,
     learn = jax.jit(T.learn)
     out["learn_s"] = _time(learn, post, k, reps=reps)
     from dscpp_jax.td3 import td3_updates
-    tcfg, sample = T.td3_config(cfg), T.td3_sample_fn(cfg, env)
+    tcfg, sample = TD3Config.from_section(cfg.td3, cfg.model_based), T.td3_sample_fn(cfg, env)
     out["td3_updates"] = cfg.td3_updates
-    out["td3_sample_block"] = cfg.td3_sample_block
-    for blk in sorted({cfg.td3_sample_block, *td3_blocks}):
+    out["td3_sample_block"] = cfg.td3.sample_block
+    for blk in sorted({cfg.td3.sample_block, *td3_blocks}):
         fn = jax.jit(lambda td3, rep, kk, blk=blk: td3_updates(
             tcfg, td3, T.td3_buffer(cfg, rep), kk, cfg.td3_updates, sample, sample_block=blk))
         t = _time(fn, post.td3, post.replay, k, reps=reps)
         out.setdefault("td3_s_by_sample_block", {})[str(blk)] = t
-        if blk == cfg.td3_sample_block:
+        if blk == cfg.td3.sample_block:
             out["td3_s"] = t
     # learn as training meets it: right after a rollout, whose option executions left rows dirty
     rolled = roll(post, k)[0]

@@ -78,7 +78,7 @@ CORNERS = ((9.0, 9.0), (-9.0, 9.0), (9.0, -9.0), (-9.0, -9.0))
 A2_SETS = ("shared_critic=false",)
 # Config fields that `train --resume` accepts (schedule and host-side cadences)
 RESUME_FIELDS = {"total_env_steps", "total_episodes", "eval_every", "eval_episodes",
-                 "checkpoint_every", "keep_checkpoints", "log_every"}
+                 "checkpoint_every", "keep_checkpoints"}
 # Settings every group of the driver trains with, before the user's --set: the committed paper
 # runs were trained with float32 TD3, which the ant preset no longer uses for the model-free
 # learners, so a group trained or retrained by the driver matches the others in its figures.
@@ -323,7 +323,7 @@ def schedule(exp: Exp, args) -> tuple:
     kw = _overrides(_sets(exp, args))
     kw.pop("total_env_steps", None)
     cfg = preset(args.preset, exp.run_env(args.env_map), exp.algo, **kw)
-    steps = args.total_steps or (exp.episodes + cfg.num_envs) * cfg.episode_length
+    steps = args.total_steps or (exp.episodes + cfg.run.num_envs) * cfg.task.episode_length
     return exp.episodes, int(steps)
 
 
@@ -407,7 +407,7 @@ def _frontier_note(data, args) -> str:
                      + "; ".join(f"{m}: {beyond_words(m, args)}" for m in beyond)
                      + "; `docs/presets.md`); they are not claims of the paper.")
     penalty = sorted({e.algo for e in exps
-                      if preset(args.preset, e.run_env(args.env_map), e.algo).td3_action_l2 > 0
+                      if preset(args.preset, e.run_env(args.env_map), e.algo).td3.action_l2 > 0
                       and e.algo not in PAPER_BASELINES})
     if penalty:
         parts.append(f"{_listed([NAMES[a] for a in penalty])} keep the preset's action penalty "
@@ -459,8 +459,8 @@ def config_mismatch(group_dir: str, exp: Exp, args) -> list:
     asked = preset(args.preset, exp.run_env(args.env_map), exp.algo, **kw)
     made = Config.from_dict(have)   # fields added since: what it ran with
     skip |= asked.inert_fields() & made.inert_fields()   # e.g. the radius of a frontier left off
-    want = {k: v for k, v in asked.to_dict().items() if k not in skip}
-    had = made.to_dict()
+    want = {k: v for k, v in asked.flat().items() if k not in skip}
+    had = made.flat()
     return [f"{k}={had[k]!r} (asked: {v!r})" for k, v in sorted(want.items()) if had[k] != v]
 
 
@@ -1000,7 +1000,7 @@ def corner_eval(seed_dir: str, step: Optional[int]) -> Optional[dict]:
                # sparse reward: -1 a step, 0 on the step that reaches the goal
                ret=-(steps - success).astype(float),
                xy=np.asarray(res.xy), option=np.asarray(res.option),
-               max_options=np.asarray(cfg.max_options))
+               max_options=np.asarray(cfg.chain.max_options))
     np.savez(path, **out)
     return out
 

@@ -62,6 +62,9 @@ def inband_window(run_dir: str):
             c = json.load(f)["config"]
     except (OSError, KeyError, ValueError):
         return None
+    _dscpp_jax()
+    from dscpp_jax.config import flat_config   # pure Python: no JAX
+    c = flat_config(c)
     return c["inband_eval_window"] if c.get("inband_eval_window", 0) > 0 else c["inband_eval_envs"]
 
 

@@ -48,7 +48,7 @@ def test_cli_train_resume_interrupt_eval_plot(tmp_path, monkeypatch, capsys):
     assert cfg["config"]["algo"] == "mb_dscpp" and "jax" in cfg["versions"]
     assert "xla_flags" in cfg["versions"]
     # the env's own constants are recorded too (physics settings of the ant, for instance)
-    assert cfg["env"]["episode_length"] == cfg["config"]["episode_length"]
+    assert cfg["env"]["episode_length"] == cfg["config"]["task"]["episode_length"]
     m = read_metrics(run)
     assert m["iteration"] == [1.0, 2.0]
     assert m["eval/success_rate"][-1] == m["eval/success_rate"][-1]  # evaluated (not NaN)

@@ -19,10 +19,12 @@ GOLDEN = pathlib.Path(__file__).parent / "data" / "presets_golden.json"
 
 def _golden_config(golden: dict, key: str) -> dict:
     """The Config fields the golden file records for `key` ("preset/env/algo[/diverse_starts=
-    false]"): the defaults, the variant's differences from them, and env, algo and preset."""
+    false]"): the defaults, the variant's differences from them, and env, algo and preset; fields
+    retired since (C.RETIRED_FIELDS) left out."""
     name, env, algo = key.split("/")[:3]
-    return {**golden["defaults"], **golden["variants"][golden["presets"][key]],
-            "env": env, "algo": algo, "preset": name}
+    out = {**golden["defaults"], **golden["variants"][golden["presets"][key]],
+           "env": env, "algo": algo, "preset": name}
+    return {k: v for k, v in out.items() if k not in C.RETIRED_FIELDS}
 
 
 # Preset entries changed on purpose since the golden file was written: the paper's baselines
@@ -64,8 +66,8 @@ def test_every_preset_gives_the_golden_config():
         old = _golden_config(golden, key)
         assert all(old[k] != v for k, v in _intended(key).items()), key
     assert all("/".join(e) in golden["presets"] for e in INTENDED)
-    fields = set(golden["defaults"])          # fields added since take their defaults here
-    assert golden["defaults"] == _only(Config().to_dict(), fields)          # no default changed
+    fields = set(golden["defaults"]) - set(C.RETIRED_FIELDS)   # fields added since: defaults
+    assert _only(golden["defaults"], fields) == _only(Config().flat(), fields)  # none changed
     keys = set(golden["presets"])
     assert len(keys) == len(PRESETS) * len(ENV_NAMES) * len(ALGOS) * 2
     for name in PRESETS:
@@ -77,10 +79,10 @@ def test_every_preset_gives_the_golden_config():
                     want = {**_golden_config(golden, key), **_intended(key), **extra}
                     for sub in (None,) + SUBGOALS:
                         kw = dict(extra) if sub is None else {**extra, "subgoal": sub}
-                        got = preset(name, env, algo, **kw).to_dict()
+                        got = preset(name, env, algo, **kw).flat()
                         assert _only(got, fields) == {**want, **kw}, (key, kw)
-                        assert all(got[f] == Config().to_dict()[f] for f in set(got) - fields)
-    assert _only(preset().to_dict(), fields) == _golden_config(golden, "fast/point_u_maze/mb_dscpp")
+                        assert all(got[f] == Config().flat()[f] for f in set(got) - fields)
+    assert _only(preset().flat(), fields) == _golden_config(golden, "fast/point_u_maze/mb_dscpp")
 
 
 def _only(d: dict, keys) -> dict:
@@ -115,7 +117,7 @@ def test_every_preset_entry_loads_and_validates():
             for key, entry in entries.items():
                 where = f"{table_name}[{name!r}][{key!r}]"
                 assert key[0] in env_sels and key[1] in learner_sels, where
-                assert entry and set(entry) <= {f.name for f in dataclasses.fields(Config)}, where
+                assert entry and set(entry) <= set(C.FLAT_NAMES), where
                 Config().override(**entry)                  # each value fits its field
                 hits = [(e, a) for e in ENV_NAMES for a in ALGOS
                         if any(e_ is entry for e_ in _applied(name, e, a))]
@@ -124,7 +126,7 @@ def test_every_preset_entry_loads_and_validates():
                     cfg = preset(name, env, algo)           # later entry sets the same field
                     for k in entry:
                         last = [e for e in _applied(name, env, algo) if k in e][-1]
-                        assert getattr(cfg, k) == last[k], (where, env, algo, k)
+                        assert cfg.get(k) == last[k], (where, env, algo, k)
 
 
 def test_presets_merge_from_the_least_to_the_most_specific_entry():
@@ -142,23 +144,23 @@ def test_presets_merge_from_the_least_to_the_most_specific_entry():
 
 def test_known_preset_values():
     p = preset("paper", "u_maze", "mb_dscpp")
-    assert (p.mpc_samples, p.mpc_horizon, p.gestation, p.num_envs, p.steps_per_iter,
-            p.total_episodes, p.ant_integrator) == (14000, 7, 10, 1, 1000, 2001, "RK4")
-    assert preset("paper", "point_u_maze", "mb_dscpp").ant_integrator == "Euler"
+    assert (p.mpc.samples, p.mpc.horizon, p.chain.gestation, p.run.num_envs, p.run.steps_per_iter,
+            p.run.total_episodes, p.task.ant_integrator) == (14000, 7, 10, 1, 1000, 2001, "RK4")
+    assert preset("paper", "point_u_maze", "mb_dscpp").task.ant_integrator == "Euler"
     pt = preset("fast", "point_medium", "mf_dscpp")
-    assert (pt.num_envs, pt.mpc_samples, pt.gestation, pt.max_options, pt.td3_lr) == (
+    assert (pt.run.num_envs, pt.mpc.samples, pt.chain.gestation, pt.chain.max_options, pt.td3.lr) == (
         16, 128, 5, 8, 3e-4)
     assert not pt.frontier_on                               # the point twins: the paper's rule
-    assert preset("fast", "u_maze", "mb_dscpp").mpc_samples == 2048
-    assert preset("fast", "large", "mb_dscpp").mpc_samples == 4096
-    assert preset("fast", "four_rooms", "dual").gestation == 10
+    assert preset("fast", "u_maze", "mb_dscpp").mpc.samples == 2048
+    assert preset("fast", "large", "mb_dscpp").mpc.samples == 4096
+    assert preset("fast", "four_rooms", "dual").chain.gestation == 10
     assert not preset("fast", "four_rooms", "dual").frontier_on
     mb, mf = preset("fast", "medium", "mb_dscpp"), preset("fast", "medium", "td3_her")
-    assert mb.frontier_on and mb.max_options == 32 and mb.td3_dtype == "float32"
-    assert (mf.td3_dtype, mf.td3_batch_size) == ("bfloat16", 512) and not mf.frontier_on
-    assert {k: getattr(mf, k) for k in C.MEDIUM_MODEL_FREE_TD3} == C.MEDIUM_MODEL_FREE_TD3
+    assert mb.frontier_on and mb.chain.max_options == 32 and mb.td3.dtype == "float32"
+    assert (mf.td3.dtype, mf.td3.batch_size) == ("bfloat16", 512) and not mf.frontier_on
+    assert {k: mf.get(k) for k in C.MEDIUM_MODEL_FREE_TD3} == C.MEDIUM_MODEL_FREE_TD3
     off = preset("fast", "medium", "mf_dscpp", diverse_starts=False)
-    assert not off.frontier_on and off.max_options == 24
+    assert not off.frontier_on and off.chain.max_options == 24
     assert not preset("paper", "medium", "mb_dscpp").frontier_on
 
 
@@ -167,8 +169,8 @@ def test_the_paper_baselines_get_nothing_beyond_the_paper():
         for env in ENV_NAMES:
             for algo in C.PAPER_BASELINES:
                 cfg = preset(name, env, algo)
-                assert not cfg.frontier_on and cfg.td3_action_l2 == 0.0, (name, env, algo)
-                assert (cfg.her_strategy, cfg.her_relabel_prob) == ("final", 0.5)
+                assert not cfg.frontier_on and cfg.td3.action_l2 == 0.0, (name, env, algo)
+                assert (cfg.td3.her_strategy, cfg.td3.her_relabel_prob) == ("final", 0.5)
                 assert C.paper_rule_overrides(name, env, algo) == {}
     assert all(not set(C.PAPER_BASELINES) & set(a) for a in C.FRONTIER_CHAINS.values())
     # DSC++ keeps its extras; paper_rule_overrides turns them off
@@ -177,8 +179,8 @@ def test_the_paper_baselines_get_nothing_beyond_the_paper():
                       td3_updates_per_step=0.25)
     mf = preset("fast", "medium", "mf_dscpp", **C.paper_rule_overrides("fast", "medium",
                                                                         "mf_dscpp"))
-    assert not mf.frontier_on and (mf.her_strategy, mf.her_relabel_prob, mf.td3_action_l2,
-                                   mf.max_options) == ("final", 0.5, 1.0, 24)
+    assert not mf.frontier_on and (mf.td3.her_strategy, mf.td3.her_relabel_prob, mf.td3.action_l2,
+                                   mf.chain.max_options) == ("final", 0.5, 1.0, 24)
     assert C.paper_rule_overrides("fast", "four_rooms", "mf_dscpp") == dict(
         frontier_start_prob=0.0, frontier_parent=False)
     assert C.paper_rule_overrides("fast", "u_maze", "mb_dscpp") == {}
@@ -193,13 +195,14 @@ def test_env_names_are_those_envs_make_builds():
 
 def test_every_field_has_a_docstring():
     tree = ast.parse(pathlib.Path(C.__file__).read_text())
-    cls = next(n for n in tree.body if isinstance(n, ast.ClassDef) and n.name == "Config")
-    documented = set()
-    for a, b in zip(cls.body, cls.body[1:]):
-        if (isinstance(a, ast.AnnAssign) and isinstance(b, ast.Expr)
-                and isinstance(b.value, ast.Constant) and isinstance(b.value.value, str)):
-            documented.add(a.target.id)
-    assert documented == {f.name for f in dataclasses.fields(Config)}
+    for cls_ in (Config, *C.SECTIONS.values()):
+        cls = next(n for n in tree.body if isinstance(n, ast.ClassDef) and n.name == cls_.__name__)
+        documented = set()
+        for a, b in zip(cls.body, cls.body[1:]):
+            if (isinstance(a, ast.AnnAssign) and isinstance(b, ast.Expr)
+                    and isinstance(b.value, ast.Constant) and isinstance(b.value.value, str)):
+                documented.add(a.target.id)
+        assert documented == {f.name for f in dataclasses.fields(cls_)}, cls_.__name__
 
 
 def test_field_types_are_checked_naming_the_field_value_and_type():
@@ -216,8 +219,8 @@ def test_field_types_are_checked_naming_the_field_value_and_type():
         Config(td3_lr="fast")
     with pytest.raises(ValueError, match="env=3 .*a string"):
         Config(env=3)
-    assert Config(td3_lr=1).td3_lr == 1 and Config(td3_lr=1) == Config(td3_lr=1.0)
-    assert Config(seed=np.int64(3)).seed == 3               # NumPy integers are integers
+    assert Config(td3_lr=1).td3.lr == 1 and Config(td3_lr=1) == Config(td3_lr=1.0)
+    assert Config(seed=np.int64(3)).run.seed == 3               # NumPy integers are integers
     with pytest.raises(ValueError, match="gestation='abc'"):
         preset("fast", "point_u_maze", "mb_dscpp", gestation="abc")
 

@@ -1,4 +1,4 @@
-"""In-band evaluation (`Config.inband_eval_envs`): evaluation episodes stepped inside
+"""In-band evaluation (`Config.eval.inband_envs`): evaluation episodes stepped inside
 `train_step` never touch learning state, report what `evaluate` reports for the same policy,
 checkpoint and resume exactly, work in seed groups, and compile once."""
 import os
@@ -63,9 +63,9 @@ def test_inband_never_touches_learning_state(mb_runs):
         for k in ("inband/success_rate", "inband/steps_to_goal", "inband/episodes"):
             assert np.isfinite(b[k]), k
     ib = s_on.inband
-    steps = cfg.steps_per_iter * ITERS
+    steps = cfg.run.steps_per_iter * ITERS
     assert int(ib.t) == steps
-    assert int(ib.episodes) >= E * (steps // cfg.episode_length)   # episodes end by the limit
+    assert int(ib.episodes) >= E * (steps // cfg.task.episode_length)   # episodes end by the limit
     assert float(m_on[-1]["inband/episodes"]) == int(ib.episodes)
 
 
@@ -79,7 +79,7 @@ def test_metrics_convention_before_and_after_episodes():
     ib = T.inband_init(jax.random.PRNGKey(0), cfg)
     m = T.inband_metrics(cfg, ib)
     assert {k: float(v) for k, v in m.items()} == {
-        "inband/success_rate": 0.0, "inband/steps_to_goal": float(cfg.episode_length),
+        "inband/success_rate": 0.0, "inband/steps_to_goal": float(cfg.task.episode_length),
         "inband/episodes": 0.0, "inband/window": 0.0}
     # a ring of 3 after 5 episodes holds the last 3 (slots 0, 1 rewritten by episodes 4, 5)
     ib = ib.replace(success=jnp.array([True, False, True]), steps=jnp.array([10, 100, 30]),
@@ -100,7 +100,7 @@ def test_inband_steps_follow_evaluate_inside_train_step(mb_runs):
     s = s_on.replace(inband=T.inband_init(k, s_on.config))
     res = evaluate_episodes(s, k, E)
     s2, m = T.train_step(s)          # the program compiled for the fixture
-    ib, T_ = s2.inband, cfg.steps_per_iter
+    ib, T_ = s2.inband, cfg.run.steps_per_iter
     assert np.all(np.asarray(res.steps) > T_) and int(ib.episodes) == 0
     np.testing.assert_array_equal(np.asarray(ib.env_state.obs[:, :2]), np.asarray(res.xy[T_]))
     np.testing.assert_array_equal(np.asarray(ib.ep_steps), T_)
@@ -122,7 +122,7 @@ def test_inband_episodes_equal_evaluate_episodes(mb_runs):
     s = s_on.replace(config=cfg)
     env = T.inband_env(cfg)
     k = jax.random.PRNGKey(7)
-    n = cfg.inband_eval_envs
+    n = cfg.eval.inband_envs
     res = evaluate_episodes(s, k, n)
 
     @jax.jit
@@ -132,7 +132,7 @@ def test_inband_episodes_equal_evaluate_episodes(mb_runs):
             nes = jax.vmap(env.step)(ib.env_state, acts)
             out = (nes.obs[:, :2], nes.done > 0, nes.info["success"] > 0)
             return A.inband_record(cfg, env, s.chain, ib, ex, nes), out
-        return jax.lax.scan(body, ib, None, length=cfg.episode_length)
+        return jax.lax.scan(body, ib, None, length=cfg.task.episode_length)
 
     ib, (xy, done, succ) = jax.device_get(roll(T.inband_init(k, cfg)))
     steps, success = np.asarray(res.steps), np.asarray(res.success)
@@ -144,7 +144,7 @@ def test_inband_episodes_equal_evaluate_episodes(mb_runs):
         assert succ[L - 1, i] == success[i]
     # every finished episode, in order of finishing (step, then env): its success and length
     fin, start = [], np.zeros(n, int)
-    for t in range(cfg.episode_length):
+    for t in range(cfg.task.episode_length):
         for i in np.flatnonzero(done[t]):
             fin.append((succ[t, i], t + 1 - start[i]))
             start[i] = t + 1

@@ -1,4 +1,4 @@
-"""One TD3 per option (`Config.shared_critic=False`, the paper's appendix Figure 2): the option
+"""One TD3 per option (`Config.td3.shared_critic=False`, the paper's appendix Figure 2): the option
 axis, options that never ran keep their initial networks, each option learns only from its own
 transitions, acting and evaluation use the running option's actor, and MF-DSC++ trains, evaluates
 and resumes from a checkpoint exactly."""
@@ -75,7 +75,7 @@ _E2E = tiny("mf_dscpp", shared_critic=False, subgoal="dp", warmup_episodes=0, in
 def test_each_env_acts_with_its_options_actor():
     cfg = _E2E
     s = T.init(jax.random.PRNGKey(0), cfg)
-    tcfg = T.td3_config(s.config)
+    tcfg = TD3Config.from_section(s.config.td3, s.config.model_based)
     obs = jax.random.normal(jax.random.key(1), (5, s.env_state.obs.shape[-1]))
     goals = jax.random.normal(jax.random.key(2), (5, 2))
     options = jnp.asarray([0, 1, 2, 3, T.NO_OPTION], jnp.int32)
@@ -109,7 +109,7 @@ def test_mf_dscpp_per_option_trains_evaluates_and_resumes_exactly(tmp_path):
     assert len(ran) >= 1 and 1 <= float(m["td3/options_learning"]) <= len(ran)
     assert float(m["td3/global_critic_loss"]) > 0
     free = np.asarray(straight.chain.status) == 0
-    for o in range(cfg.max_options):      # rows never created keep their initial networks
+    for o in range(cfg.chain.max_options):      # rows never created keep their initial networks
         if o not in ran and free[o]:
             assert_trees_equal(td3_option(straight.td3, o), td3_option(s0.td3, o))
     half = s0
@@ -130,7 +130,7 @@ def test_mf_dscpp_per_option_trains_evaluates_and_resumes_exactly(tmp_path):
     obs = straight.env_state.obs
     ex, acts, opts = jax.jit(policy.step)(policy.init(obs), obs, jax.random.PRNGKey(1))
     assert acts.shape == (obs.shape[0], 2) and np.all(np.isfinite(np.asarray(acts)))
-    tcfg = T.td3_config(straight.config)
+    tcfg = TD3Config.from_section(straight.config.td3, straight.config.model_based)
     for i, o in enumerate(np.asarray(opts)):    # each env acted with its option's actor
         want = td3_act(tcfg, td3_option(straight.td3, o).actor_params, obs[i:i + 1],
                        ex.subgoal[i:i + 1])

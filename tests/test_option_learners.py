@@ -19,6 +19,7 @@ from dscpp_jax.options import FREE, GESTATION, MATURE
 from dscpp_jax.replay import RegionStep, replay_add, replay_group_index, replay_init
 from dscpp_jax.td3 import (td3_copy_option, td3_init_per_option, td3_option, td3_target_noise,
                            td3_updates_options)
+from dscpp_jax.td3 import TD3Config
 from tests.numpy_nets import np_mlp, to_np
 from tests.trainer_fixtures import background_jobs, tiny
 
@@ -85,7 +86,7 @@ def np_twin_q(params, obs, act, n_hidden=2):
 
 def test_region_td3_update_matches_numpy():
     cfg = _config()
-    tcfg = A.td3_config(cfg)
+    tcfg = TD3Config.from_section(cfg.td3, cfg.model_based)
     buf, tgt, _ = _replay(0, goal_dim=2)
     index = replay_group_index(buf, buf.data.option, K)
     states = jax.jit(lambda k: td3_init_per_option(k, K, OBS, 0, ACT, tcfg))(jax.random.key(0))
@@ -142,7 +143,7 @@ def test_options_learn_from_their_own_transitions_and_the_global_option_from_all
     if cfg.option_policies == "region":   # the global option's reward is the task's
         assert np.asarray(b.goal).shape == (256, 0)
 
-    tcfg = A.td3_config(cfg)
+    tcfg = TD3Config.from_section(cfg.td3, cfg.model_based)
     states = jax.jit(lambda k: td3_init_per_option(k, K, OBS, goal_dim, ACT, tcfg))(
         jax.random.key(0))
     update = jax.jit(lambda s, r, k: L.update_option_policies(cfg, s, r, k))
@@ -163,7 +164,7 @@ def test_options_learn_from_their_own_transitions_and_the_global_option_from_all
 @pytest.mark.parametrize("option_init", ["copy_global", "random"])
 def test_a_new_option_starts_as_the_global_option_with_copy_global(option_init):
     cfg = _config("mf_dscpp", shared_critic=False, option_init=option_init)
-    tcfg = A.td3_config(cfg)
+    tcfg = TD3Config.from_section(cfg.td3, cfg.model_based)
     buf, _, _ = _replay(2)
     states = jax.jit(lambda k: td3_init_per_option(k, K, OBS, 2, ACT, tcfg))(jax.random.key(0))
     trained, _ = jax.jit(lambda s, r, k: L.update_option_policies(cfg, s, r, k))(

@@ -3,7 +3,6 @@ with one critic per option for appendix Figure 2), two seeds, a few iterations e
 that has runs is drawn with its CSV, the README checks each claim, and a second call trains nothing
 (finished groups are skipped)."""
 import csv
-import dataclasses
 import hashlib
 import json
 import os
@@ -16,8 +15,14 @@ import pytest
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.join(ROOT, "experiments"))
 import reproduce  # noqa: E402
+from dscpp_jax.config import flat_config  # noqa: E402
 
 sys.path.pop(0)
+
+
+def _flat(cfg):
+    """A config as runs saved it before the sections: flat."""
+    return cfg.flat()
 
 TINY = ["num_envs=4", "steps_per_iter=20", "episode_length=100", "warmup_episodes=2",
         "max_options=4", "max_pos_traj=8", "max_neg=8", "buffer_len=10", "option_timeout=40",
@@ -71,6 +76,7 @@ def test_reproduce_trains_draws_reports_then_skips(tmp_path, capsys, monkeypatch
     assert "point_u_maze-mf_dscpp-g0-1-optcritic: started" in text
     opt = json.load(open(os.path.join(runs, "point_u_maze-mf_dscpp-g0-1-optcritic",
                                       "group.json")))["config"]
+    opt = flat_config(opt)
     assert opt["shared_critic"] is False and opt["algo"] == "mf_dscpp"
     for fig in ("fig4", "fig5", "fig6", "figA1", "figA2", "figA3"):
         assert os.path.getsize(os.path.join(out, fig + ".png")) > 1000, fig
@@ -89,7 +95,7 @@ def test_reproduce_trains_draws_reports_then_skips(tmp_path, capsys, monkeypatch
     assert {r["algo"] for r in a1} == {"dsc", "mf_dscpp"}
     assert len({r["checkpoint"] for r in a1 if r["algo"] == "dsc"}) >= 3   # kept over training
     a1_cfg = json.load(open(os.path.join(runs, "point_ant_reacher-dsc-g0-1", "group.json")))
-    assert a1_cfg["config"]["checkpoint_every"] == 3   # --a1-every, not --set's 2
+    assert a1_cfg["config"]["run"]["checkpoint_every"] == 3   # --a1-every, not --set's 2
     a2 = _rows(os.path.join(out, "figA2.csv"))
     assert {(r["algo"], r["critic"]) for r in a2} == {("mf_dscpp", "shared"),
                                                       ("mf_dscpp", "per_option")}
@@ -512,7 +518,7 @@ def test_driver_trains_td3_in_float32_and_older_groups_still_match(tmp_path):
     cmd = " ".join(reproduce.train_command(exp, str(tmp_path / "g"), args, resume=False))
     assert "--set td3_dtype=float32" in cmd
     from dscpp_jax.config import preset
-    cfg = dataclasses.asdict(preset("fast", "four_rooms", "mf_dscpp"))
+    cfg = _flat(preset("fast", "four_rooms", "mf_dscpp"))
     assert cfg["td3_dtype"] == "bfloat16"   # what the preset alone would give
     gdir = tmp_path / "grp"
     gdir.mkdir()
@@ -535,7 +541,7 @@ def test_driver_trains_td3_in_float32_and_older_groups_still_match(tmp_path):
     assert "--set mpc_samples=4096" in " ".join(
         reproduce.train_command(u, str(tmp_path / "g"), args, resume=False))
     assert "mpc_samples" not in cmd
-    ucfg = dataclasses.asdict(preset("fast", "u_maze", "mb_dscpp"))
+    ucfg = _flat(preset("fast", "u_maze", "mb_dscpp"))
     (gdir / "group.json").write_text(json.dumps({"seeds": [0], "config": ucfg}))
     assert reproduce.config_mismatch(str(gdir), u, args) == ["mpc_samples=2048 (asked: 4096)"]
     args.env_map = {"u_maze": "point_u_maze"}     # the point twin keeps its own preset
@@ -559,7 +565,7 @@ def test_a_group_made_before_a_preset_change_is_a_mismatch(tmp_path):
         (gdir / "group.json").write_text(json.dumps({"seeds": [0, 1], "config": config}))
         return reproduce.config_mismatch(str(gdir), exp, args)
 
-    now = dict(dataclasses.asdict(preset("fast", "medium", "mb_dscpp", td3_dtype="float32")),
+    now = dict(_flat(preset("fast", "medium", "mb_dscpp", td3_dtype="float32")),
                physics="warp", seed=1, total_episodes=1000, eval_every=5)
     assert mismatch(now) == []
     before = {k: v for k, v in now.items() if not k.startswith("frontier_")}
@@ -629,7 +635,7 @@ def test_figures_compare_at_the_papers_rule_and_show_dscpp_beyond_it_beside():
         cfg = preset("fast", e.env, e.algo, **reproduce._overrides(reproduce._sets(e, args)))
         assert cfg.frontier_on == e.beyond, e
         if e.env == "medium" and not e.beyond:
-            assert (cfg.her_strategy, cfg.her_relabel_prob) == ("final", 0.5), e
+            assert (cfg.td3.her_strategy, cfg.td3.her_relabel_prob) == ("final", 0.5), e
     # on the point-mass twins nothing is beyond the paper: the preset's own groups
     args.env_map = {m: "point_" + m for m in reproduce.MAZES}
     plan = reproduce.plan(_ns(args, fig="6"))
@@ -643,7 +649,7 @@ def test_print_commands_lists_the_groups_to_train(tmp_path, capsys):
     from dscpp_jax.config import preset
     from dscpp_jax.run_logging import RunLogger
     runs = tmp_path / "runs"
-    made = dataclasses.asdict(preset("fast", "four_rooms", "mb_dscpp", td3_dtype="float32",
+    made = _flat(preset("fast", "four_rooms", "mb_dscpp", td3_dtype="float32",
                                      frontier_start_prob=0.0, frontier_parent=False))
     g = runs / "four_rooms-mb_dscpp-g0-4"
     g.mkdir(parents=True)
@@ -680,25 +686,25 @@ def test_medium_model_free_learners_share_one_td3_configuration():
     penalty of 2), DSC++'s chains 32 rows; the paper's baselines, the model-based learners and
     the other mazes keep the ant preset's."""
     from dscpp_jax.config import MEDIUM_MODEL_FREE_TD3, MODEL_BASED_ALGOS, preset
-    td3 = lambda c: (c.her_strategy, c.her_relabel_prob, c.td3_action_l2, c.td3_updates_per_step,
-                     c.td3_batch_size, c.td3_lr, c.td3_dtype)
+    td3 = lambda c: (c.td3.her_strategy, c.td3.her_relabel_prob, c.td3.action_l2, c.td3.updates_per_step,
+                     c.td3.batch_size, c.td3.lr, c.td3.dtype)
     free = [preset("fast", "medium", a) for a in ("mf_dscpp", "td3_her")]
     assert len({td3(c) for c in free}) == 1
     assert td3(free[0])[:3] == ("future", 0.8, 2.0) == tuple(MEDIUM_MODEL_FREE_TD3[k] for k in (
         "her_strategy", "her_relabel_prob", "td3_action_l2"))
-    assert [c.max_options for c in free] == [32, 24]
+    assert [c.chain.max_options for c in free] == [32, 24]
     for a in ("dsc", "dual"):          # the paper's baselines: nothing beyond the paper
         c = preset("fast", "medium", a)
-        assert td3(c)[:3] == ("final", 0.5, 0.0) and c.max_options == 24
+        assert td3(c)[:3] == ("final", 0.5, 0.0) and c.chain.max_options == 24
     for a in MODEL_BASED_ALGOS:
         c = preset("fast", "medium", a)
-        assert (c.her_strategy, c.td3_action_l2) == ("final", 0.0)
-    assert preset("fast", "medium", "mb_dscpp").max_options == 32
+        assert (c.td3.her_strategy, c.td3.action_l2) == ("final", 0.0)
+    assert preset("fast", "medium", "mb_dscpp").chain.max_options == 32
     for env in ("u_maze", "four_rooms", "large", "point_medium"):
         c = preset("fast", env, "mf_dscpp")
-        assert c.her_strategy == "final" and c.td3_action_l2 != 2.0
+        assert c.td3.her_strategy == "final" and c.td3.action_l2 != 2.0
     # a user's --set still wins
-    assert preset("fast", "medium", "mf_dscpp", her_strategy="final").her_strategy == "final"
+    assert preset("fast", "medium", "mf_dscpp", her_strategy="final").td3.her_strategy == "final"
 
 
 def test_readme_lists_groups_made_with_other_settings(tmp_path):
@@ -710,10 +716,10 @@ def test_readme_lists_groups_made_with_other_settings(tmp_path):
     args.env_map = {}
     old, new = (reproduce.Exp("medium", a, 2001, "0-4") for a in ("td3_her", "mb_dscpp"))
     info = {}
-    for exp, cfg in ((old, dict(dataclasses.asdict(preset("fast", "medium", "td3_her",
+    for exp, cfg in ((old, dict(_flat(preset("fast", "medium", "td3_her",
                                                           td3_dtype="float32")),
                                 her_strategy="final", td3_action_l2=1.0)),
-                     (new, dataclasses.asdict(preset("fast", "medium", "mb_dscpp", td3_dtype="float32")))):
+                     (new, _flat(preset("fast", "medium", "mb_dscpp", td3_dtype="float32")))):
         gdir = tmp_path / exp.name({})
         gdir.mkdir()
         (gdir / "group.json").write_text(json.dumps({"seeds": [0], "config": cfg}))
@@ -732,7 +738,7 @@ def test_a_figure_takes_its_seeds_from_a_larger_group(tmp_path, capsys):
     larger group with nothing to resume does not take the asked seeds' training."""
     from dscpp_jax.config import preset
     from dscpp_jax.run_logging import RunLogger
-    cfg = dataclasses.asdict(preset("fast", "point_u_maze", "dsc", td3_dtype="float32"))
+    cfg = _flat(preset("fast", "point_u_maze", "dsc", td3_dtype="float32"))
     runs = tmp_path / "runs"
     args = reproduce.build_parser().parse_args(
         ["--runs-root", str(runs), "--out", str(tmp_path / "out"), "--seeds", "0-1",

@@ -21,6 +21,7 @@ import types
 
 import pytest
 
+from dscpp_jax import config as C
 from dscpp_jax import run_dir
 from dscpp_jax.run_logging import RunDirError, atomic_write, os_error_fix
 
@@ -100,7 +101,7 @@ def _steps(run):
 
 def _config(run, name="config.json"):
     with open(os.path.join(run, name)) as f:
-        return json.load(f)["config"]
+        return C.flat_config(json.load(f)["config"])
 
 
 def _startup(run):
@@ -281,11 +282,11 @@ def test_resume_applies_every_allowed_flag_and_accepts_equal_fixed_ones(budget_s
     before = _steps(run)
     total = (k + 3) * STEPS_PER_ITERATION
     applied = {"total_env_steps": total, "total_episodes": 1000, "eval_every": 2,
-               "eval_episodes": 3, "checkpoint_every": 2, "keep_checkpoints": 3, "log_every": 2}
+               "eval_episodes": 3, "checkpoint_every": 2, "keep_checkpoints": 3}
     rc, out, err, _ = _cli(
         ["train", "--resume", run, "--no-progress", "--total-steps", total,
          "--total-episodes", "1000", "--eval-every", "2", "--eval-episodes", "3",
-         "--checkpoint-every", "2", "--set", "keep_checkpoints=3", "--set", "log_every=2",
+         "--checkpoint-every", "2", "--set", "keep_checkpoints=3", "--set", "eval.episodes=3",
          "--env", "point_u_maze", "--algo", "td3_her", "--seed", "0", "--num-envs", "2",
          "--set", "td3_hidden=16"], xla_cache)
     assert rc == 0, err[-3000:]

@@ -140,7 +140,7 @@ def test_group_equals_separate_runs(ref, tmp_path):
     # the initial states are exactly those of separate runs
     g = SG.init_group([3, 5], cfg)
     # (a group's config records its size, which sizes what its seeds share; nothing else differs)
-    assert SG.seed_state(g, 1).config.group_size == 2
+    assert SG.seed_state(g, 1).config.run.group_size == 2
     assert_trees_equal(SG.seed_state(g, 1), T.init(jax.random.PRNGKey(5), cfg.override(group_size=2)))
     for s in (0, 1):
         single = str(tmp_path / f"single{s}")
@@ -155,7 +155,7 @@ def test_group_equals_separate_runs(ref, tmp_path):
     assert gj["seeds"] == [0, 1] and gj["mesh"] == {"seeds": 1} and "jax" in gj["versions"]
     st = read_startup(ref)   # the group's start, once
     assert len(st) == 1 and st[0]["seeds"] == [0, 1] and "first iteration" in st[0]["phases_s"]
-    assert json.load(open(os.path.join(ref, "s1", "config.json")))["config"]["seed"] == 1
+    assert json.load(open(os.path.join(ref, "s1", "config.json")))["config"]["run"]["seed"] == 1
     assert not os.path.exists(os.path.join(ref, "s0", "checkpoints"))   # one group checkpoint
 
 
@@ -427,7 +427,7 @@ def test_warp_physics_group_equals_separate_runs():
         pytest.skip("warp-lang is not installed")
     cfg = _warp_config()
     states = SG.init_group([0, 1], cfg)
-    assert states.config.group_size == 2
+    assert states.config.run.group_size == 2
     states, m = SG.train_step_group(states)
     assert np.asarray(m["counters/env_steps"]).tolist() == [20.0, 20.0]
     summ, _ = SG.evaluate_group(states, num_episodes=1)
@@ -447,7 +447,7 @@ def test_warp_group_seed_directory_evaluates(tmp_path):
     states, group, _ = group_train.train_group(cfg, [0, 1], str(tmp_path / "g"), progress=False,
                                                max_iterations=1)
     got_cfg, one = load_run(os.path.join(group, "s1"))
-    assert got_cfg.seed == 1
+    assert got_cfg.run.seed == 1
     assert_trees_equal(one.td3, SG.seed_state(states, 1).td3)
     summary, _ = evaluate(one, jax.random.PRNGKey(0), 1)
     assert 0.0 <= summary["eval/success_rate"] <= 1.0
@@ -455,7 +455,7 @@ def test_warp_group_seed_directory_evaluates(tmp_path):
 
 def test_a_stuck_chain_warning_names_its_seed_once(tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(host_loop, "stuck_chain_warning", lambda m, cfg, who="": (
-        f"warning: {who}stuck" if cfg.seed == 1 else None))
+        f"warning: {who}stuck" if cfg.run.seed == 1 else None))
     # each seed's line ends with diagnose's verdict on that seed's directory
     monkeypatch.setattr(diagnose, "chain_verdict", lambda cfg, d: f"verdict of {os.path.basename(d)}")
     assert main(TRAIN + ["--seeds", "0-1", "--run-dir", str(tmp_path / "g")]) == 0
@@ -470,7 +470,7 @@ def test_a_seed_finishing_early_waits_for_the_next_evaluation(tmp_path, monkeypa
     group's next evaluation (here the final one) instead of costing an evaluation of its own, and
     holds the numbers its separate run logs when it stops."""
     budget = {0: TOTAL, 1: TOTAL // 2}   # seed 1 stops after 3 of seed 0's 6 iterations
-    monkeypatch.setattr(host_loop, "schedule_done", lambda cfg, steps, episodes: steps >= budget[cfg.seed])
+    monkeypatch.setattr(host_loop, "schedule_done", lambda cfg, steps, episodes: steps >= budget[cfg.run.seed])
     calls = []
     real_eval = SG.evaluate_group
     monkeypatch.setattr(SG, "evaluate_group", lambda *a, **k: calls.append(1) or real_eval(*a, **k))

@@ -11,6 +11,7 @@ import dscpp_jax
 from dscpp_jax import acting as A
 from dscpp_jax import trainer as T
 from dscpp_jax.config import Config, preset
+from dscpp_jax.td3 import TD3Config
 from tests.trainer_fixtures import (assert_trees_equal, background_jobs, tiny,
                                     worker_on_spare_cores)
 
@@ -38,40 +39,40 @@ def test_invalid_configs_fail_before_compiling():
 
 def test_presets_keep_paper_constants():
     p = preset("paper", "u_maze", "mb_dscpp")
-    assert (p.gestation, p.buffer_len, p.option_timeout, p.episode_length) == (10, 50, 200, 1000)
-    assert (p.warmup_episodes, p.mpc_samples, p.mpc_horizon, p.num_envs) == (50, 14000, 7, 1)
+    assert (p.chain.gestation, p.chain.buffer_len, p.chain.option_timeout, p.task.episode_length) == (10, 50, 200, 1000)
+    assert (p.task.warmup_episodes, p.mpc.samples, p.mpc.horizon, p.run.num_envs) == (50, 14000, 7, 1)
     assert p.effective_td3_lr == 1e-5 and preset("paper", "u_maze", "mf_dscpp").effective_td3_lr == 3e-4
     hash(p)  # static jit argument
-    assert T.td3_config(p).target_range is None  # the original does not clip TD targets
-    assert T.td3_config(p.override(td3_clip_targets=True)).target_range == pytest.approx((-100.0, 0.0))
-    assert T.td3_config(p.override(td3_action_l2=1.0)).action_l2 == 1.0
-    assert T.td3_config(p).action_l2 == 0.0                # off in the paper preset
-    assert p.td3_sample_block == 1
+    assert TD3Config.from_section(p.td3, p.model_based).target_range is None  # the original does not clip TD targets
+    assert TD3Config.from_section(p.override(td3_clip_targets=True).td3, p.override(td3_clip_targets=True).model_based).target_range == pytest.approx((-100.0, 0.0))
+    assert TD3Config.from_section(p.override(td3_action_l2=1.0).td3, p.override(td3_action_l2=1.0).model_based).action_l2 == 1.0
+    assert TD3Config.from_section(p.td3, p.model_based).action_l2 == 0.0                # off in the paper preset
+    assert p.td3.sample_block == 1
     # the ant `fast` preset: the action penalty on the model-free actors only; blocked sampling
     for algo, l2 in (("mf_dscpp", 1.0), ("td3_her", 1.0), ("dsc", 0.0), ("mb_dscpp", 0.0)):
         f = preset("fast", "four_rooms", algo)
-        assert (T.td3_config(f).action_l2, f.td3_sample_block) == (l2, 32), algo
-    assert preset("fast", "point_u_maze", "mf_dscpp").td3_action_l2 == 0.0
+        assert (TD3Config.from_section(f.td3, f.model_based).action_l2, f.td3.sample_block) == (l2, 32), algo
+    assert preset("fast", "point_u_maze", "mf_dscpp").td3.action_l2 == 0.0
     # bf16 in TD3's hidden layers for the ant's model-free learners; float32 elsewhere
     for algo, dt in (("mf_dscpp", "bfloat16"), ("td3_her", "bfloat16"), ("dsc", "bfloat16"),
                      ("mb_dscpp", "float32"), ("mb_flat", "float32")):
-        assert T.td3_config(preset("fast", "four_rooms", algo)).compute_dtype == dt, algo
-    assert preset("fast", "point_u_maze", "mf_dscpp").td3_dtype == "float32"
-    assert preset("paper", "u_maze", "mf_dscpp").td3_dtype == "float32"
+        assert TD3Config.from_section(preset("fast", "four_rooms", algo).td3, preset("fast", "four_rooms", algo).model_based).compute_dtype == dt, algo
+    assert preset("fast", "point_u_maze", "mf_dscpp").td3.dtype == "float32"
+    assert preset("paper", "u_maze", "mf_dscpp").td3.dtype == "float32"
     # MPC action sequences per decision: 2,048 on the ant U-maze, 4,096 on the other ant envs
-    assert [preset("fast", e).mpc_samples for e in ("u_maze", "four_rooms", "medium", "large",
+    assert [preset("fast", e).mpc.samples for e in ("u_maze", "four_rooms", "medium", "large",
                                                       "ant_reacher")] == [2048] + [4096] * 4
-    assert preset("fast", "point_u_maze").mpc_samples == 128
+    assert preset("fast", "point_u_maze").mpc.samples == 128
     # the chain's frontier: on for DSC++'s skill chains on the ant mazes with dead ends and on
     # four rooms, off elsewhere (the paper's baselines never have it)
     for env, algo, rows in (("medium", "mb_dscpp", 32), ("medium", "mf_dscpp", 32),
                             ("large", "mb_dscpp", 24),
                             ("four_rooms", "mb_dscpp", 24), ("four_rooms", "mf_dscpp", 24)):
         f = preset("fast", env, algo)
-        assert (f.frontier_start_prob, f.frontier_parent, f.frontier_radius,
-                f.frontier_inner_radius, f.max_options) == (0.5, True, 6.0, 3.0, rows), (env, algo)
+        assert (f.frontier.start_prob, f.frontier.parent, f.frontier.radius,
+                f.frontier.inner_radius, f.chain.max_options) == (0.5, True, 6.0, 3.0, rows), (env, algo)
     # MB-DSC++ on the medium maze: the paper's one TD3 step per transition (0.25 elsewhere)
-    assert [preset("fast", e, a).td3_updates_per_step for e, a in (
+    assert [preset("fast", e, a).td3.updates_per_step for e, a in (
         ("medium", "mb_dscpp"), ("large", "mb_dscpp"), ("u_maze", "mb_dscpp"),
         ("medium", "mb_flat_value"), ("medium", "mf_dscpp"))] == [1.0, 0.25, 0.25, 0.25, 1.0]
     for env, algo in (("u_maze", "mb_dscpp"), ("four_rooms", "dual"), ("four_rooms", "td3_her"),
@@ -79,12 +80,12 @@ def test_presets_keep_paper_constants():
                       ("point_four_rooms", "mb_dscpp"), ("medium", "td3_her"),
                       ("medium", "mb_flat"), ("point_medium", "mb_dscpp")):
         f = preset("fast", env, algo)
-        assert (f.frontier_start_prob, f.frontier_parent) == (0.0, False), (env, algo)
-    assert preset("paper", "medium", "mb_dscpp").frontier_start_prob == 0.0
+        assert (f.frontier.start_prob, f.frontier.parent) == (0.0, False), (env, algo)
+    assert preset("paper", "medium", "mb_dscpp").frontier.start_prob == 0.0
     # turning diverse starts off leaves the frontier off rather than failing validation
     f = preset("fast", "medium", "mb_dscpp", diverse_starts=False)
-    assert (f.frontier_start_prob, f.frontier_parent) == (0.0, False)
-    assert preset("fast", "medium", "mf_dscpp", frontier_start_prob=0.0).frontier_parent
+    assert (f.frontier.start_prob, f.frontier.parent) == (0.0, False)
+    assert preset("fast", "medium", "mf_dscpp", frontier_start_prob=0.0).frontier.parent
     # the frontier's parameters count only where the frontier is on
     assert f.inert_fields() == {"frontier_radius", "frontier_inner_radius",
                                 "frontier_candidates", "frontier_min_open"}
@@ -103,9 +104,9 @@ def test_presets_keep_paper_constants():
     assert T.make_env(p).mj_model.opt.integrator == mujoco.mjtIntegrator.mjINT_RK4   # D4RL's
     env = T.make_env(p.override(ant_integrator="Euler"))
     assert env.mj_model.opt.integrator == mujoco.mjtIntegrator.mjINT_EULER
-    assert preset("fast", "u_maze").ant_integrator == "RK4"
-    assert preset("fast", "four_rooms").ant_integrator == "RK4"
-    assert preset("paper", "four_rooms").ant_integrator == "RK4"
+    assert preset("fast", "u_maze").task.ant_integrator == "RK4"
+    assert preset("fast", "four_rooms").task.ant_integrator == "RK4"
+    assert preset("paper", "four_rooms").task.ant_integrator == "RK4"
     assert T.make_env(preset("fast", "point_u_maze", ant_integrator="RK4")).backend != "mjx"
 
 
@@ -150,7 +151,7 @@ def test_episodes_begun_after_the_warm_up_start_anywhere():
     task_start = np.asarray(s.env_state.obs[:, :2])
     for _ in range(5):
         s, m = T.train_step(s)
-    assert int(s.counters.episodes) == cfg.num_envs and float(m["train/warmup"]) == 1.0
+    assert int(s.counters.episodes) == cfg.run.num_envs and float(m["train/warmup"]) == 1.0
     xy = np.asarray(s.env_state.obs[:, :2])
     assert np.all(np.linalg.norm(xy - task_start, axis=-1) > 1.0), (xy, task_start)
 
@@ -164,7 +165,7 @@ def test_task_start_prob_starts_that_share_of_episodes_at_the_task_start(prob):
     task_start = np.asarray(s.env_state.obs[:, :2])
     for _ in range(5):
         s, m = T.train_step(s)
-    assert int(s.counters.episodes) == cfg.num_envs
+    assert int(s.counters.episodes) == cfg.run.num_envs
     near = np.linalg.norm(np.asarray(s.env_state.obs[:, :2]) - task_start, axis=-1) < 0.5
     if prob == 1.0:
         assert near.all()
@@ -199,7 +200,7 @@ def test_evaluate_has_no_side_effects_and_takes_starts():
     before = jax.tree_util.tree_map(np.asarray, s)
     summary, res = dscpp_jax.evaluate(s, jax.random.PRNGKey(0), 3)
     assert_trees_equal(before, s)
-    assert res.xy.shape == (cfg.episode_length + 1, 3, 2) and res.option.shape == (cfg.episode_length, 3)
+    assert res.xy.shape == (cfg.task.episode_length + 1, 3, 2) and res.option.shape == (cfg.task.episode_length, 3)
     assert 0.0 <= summary["eval/success_rate"] <= 1.0
     # failure bookkeeping: per-episode option failures add up to the per-option counts
     assert int(np.sum(res.option_failures)) == int(np.sum(res.option_executions)
@@ -254,7 +255,7 @@ def test_make_policy_runs_in_a_jitted_scan():
 def test_options_time_out_after_exactly_option_timeout_steps():
     cfg = tiny("mf_dscpp")                      # option_timeout = 40
     s = T.init(jax.random.PRNGKey(3), cfg)
-    env, B = T.make_env(cfg), cfg.num_envs
+    env, B = T.make_env(cfg), cfg.run.num_envs
     far = jnp.full((B, 2), 100.0)              # never reached: only the timeout can end it
     xy = s.env_state.obs[:, :2]
     ex = s.exec.replace(option=jnp.zeros((B,), jnp.int32), subgoal=far,
@@ -265,20 +266,20 @@ def test_options_time_out_after_exactly_option_timeout_steps():
         ex = A.push_traj(ex, xy)               # training: one step taken, then the end test
         return ex, A.option_end(s.config, env, s.chain, ex, xy, jnp.zeros((B,)))[0]
     ends = []
-    for _ in range(cfg.option_timeout + 1):
+    for _ in range(cfg.chain.option_timeout + 1):
         ex, ended = train_step_end(ex)
         ends.append(bool(ended.all()) if bool(ended.any()) else False)
-    assert ends.index(True) == cfg.option_timeout - 1   # ends right after step 40
+    assert ends.index(True) == cfg.chain.option_timeout - 1   # ends right after step 40
     # the policy constructor counts the same way: 40 steps of one execution, then a new one
     policy = dscpp_jax.make_policy(s)
     pc = policy.init(s.env_state.obs)
     step = jax.jit(policy.step)
     counts = []
-    for i in range(cfg.option_timeout + 1):
+    for i in range(cfg.chain.option_timeout + 1):
         pc, _, _ = step(pc.replace(subgoal=jnp.where(pc.option[:, None] >= 0, far, pc.subgoal)),
                                s.env_state.obs, jax.random.PRNGKey(i))
         counts.append(int(pc.opt_steps[0]))
-    assert counts == list(range(1, cfg.option_timeout + 1)) + [1]
+    assert counts == list(range(1, cfg.chain.option_timeout + 1)) + [1]
 
 
 def test_nan_in_learning_stops_with_a_message(tmp_path):
@@ -375,7 +376,7 @@ def test_nan_physics_ends_that_episode_and_stays_out_of_learning():
     assert np.all(np.isfinite(np.asarray(s2.env_state.pipeline_state.qvel)))
     for buf in (s2.replay, s2.model_replay):
         valid = np.asarray(buf.valid)
-        assert valid.sum() == cfg.num_envs * cfg.steps_per_iter - 1   # the NaN step was not stored
+        assert valid.sum() == cfg.run.num_envs * cfg.run.steps_per_iter - 1   # the NaN step was not stored
         for leaf in jax.tree_util.tree_leaves(buf.data):
             x = np.asarray(leaf)
             if np.issubdtype(x.dtype, np.floating):
@@ -391,12 +392,12 @@ def _scripted_goal_option_outcomes(s):
     goal = np.asarray(T.make_env(cfg).goal, np.float32)
     succ = np.arange(B) < 4
     start = np.where(succ[:, None], goal + rng.uniform(-1, 1, (B, 2)), rng.uniform(-1, 1, (B, 2)))
-    traj = goal + rng.uniform(-1, 1, (B, cfg.buffer_len, 2))
+    traj = goal + rng.uniform(-1, 1, (B, cfg.chain.buffer_len, 2))
     obs = np.zeros((B, T.observation_size(cfg)), np.float32)
     obs[:, :2] = start
     return O.record_outcomes(s.chain, np.full((B,), O.GOAL, np.int32), succ,
                              start.astype(np.float32), traj.astype(np.float32),
-                             np.ones((B, cfg.buffer_len), bool), np.ones((B,), bool),
+                             np.ones((B, cfg.chain.buffer_len), bool), np.ones((B,), bool),
                              start_obs=obs)
 
 

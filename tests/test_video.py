@@ -101,7 +101,7 @@ def test_record_here_render_elsewhere_equals_direct_render(tmp_path, gl):
     assert main(["video", "--run", run, "--record-only"] + common) == 0
     rec = os.path.join(run, "videos", video.RECORD_FILE)
     eps, meta = video.load_record(rec)
-    assert len(eps) == 2 and meta["env"] == cfg.env and meta["max_options"] == cfg.max_options
+    assert len(eps) == 2 and meta["env"] == cfg.env and meta["max_options"] == cfg.chain.max_options
     assert not os.path.exists(os.path.join(run, "videos", "eval_topdown.mp4"))
     elsewhere = str(tmp_path / "elsewhere")   # the config alone: no checkpoint to load
     os.makedirs(elsewhere)
