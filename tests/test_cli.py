@@ -164,7 +164,7 @@ def test_plot_groups_seeds_and_names_variants(tmp_path):
     # a run written before a field existed used that field's default: it is named by it
     old = str(tmp_path / "old")
     os.makedirs(old)
-    cfg = preset("fast", "u_maze", "mb_dscpp", td3_clip_targets=False).to_dict()
+    cfg = preset("fast", "u_maze", "mb_dscpp", td3_clip_targets=False).flat()   # a flat, older file
     del cfg["td3_clip_targets"]
     write_config(old, cfg)
     groups = _group_runs([runs["a0"], runs["a1"], old])
