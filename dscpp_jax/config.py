@@ -92,8 +92,15 @@ LEGACY_DEFAULTS = dict(physics="jax")
 
 
 
+class Section:
+    """Base of the config's sections: constructing one type-checks its fields."""
+
+    def __post_init__(self):
+        _check_section(self)
+
+
 @dataclass(frozen=True)
-class TaskSection:
+class TaskSection(Section):
     """The environment's physics and episodes: their length, the warm-up, the goal
     tolerance and where training episodes start."""
 
@@ -114,12 +121,9 @@ class TaskSection:
     """with diverse starts: the share of training episodes after warm-up that start at the task
     start instead (a probability)"""
 
-    def __post_init__(self):
-        _check_section(self)
-
 
 @dataclass(frozen=True)
-class RunSection:
+class RunSection(Section):
     """The run's seed, batching, schedule and checkpoints."""
 
     seed: int = 0
@@ -139,12 +143,9 @@ class RunSection:
     keep_checkpoints: int = 2
     """checkpoints kept in the run directory (the newest)"""
 
-    def __post_init__(self):
-        _check_section(self)
-
 
 @dataclass(frozen=True)
-class TD3Section:
+class TD3Section(Section):
     """TD3 + HER (the option policies and the value function V(s | g)), their replay buffer
     and exploration."""
 
@@ -195,12 +196,9 @@ class TD3Section:
         """The learning rate in effect: `lr`, or where it is < 0 the learner's own."""
         return self.lr if self.lr > 0 else (1e-5 if model_based else 3e-4)
 
-    def __post_init__(self):
-        _check_section(self)
-
 
 @dataclass(frozen=True)
-class DynamicsSection:
+class DynamicsSection(Section):
     """The learned dynamics model f_xi of the model-based algorithms."""
 
     hidden: int = 500
@@ -218,12 +216,9 @@ class DynamicsSection:
     capacity: int = 300_000
     """the dynamics model's transition buffer size (all environments together)"""
 
-    def __post_init__(self):
-        _check_section(self)
-
 
 @dataclass(frozen=True)
-class MPCSection:
+class MPCSection(Section):
     """Random-shooting MPC over the learned model (eq. 2; eq. 1 without the value term)."""
 
     samples: int = 14_000
@@ -238,12 +233,9 @@ class MPCSection:
     """MPC's kernel: xla, pallas (the fused kernel; bfloat16) or auto (pallas on a GPU with
     bfloat16, else xla)"""
 
-    def __post_init__(self):
-        _check_section(self)
-
 
 @dataclass(frozen=True)
-class ChainSection:
+class ChainSection(Section):
     """The skill chain: gestation, option executions, the example rings, the initiation
     classifiers and how new options start."""
 
@@ -275,12 +267,9 @@ class ChainSection:
     """successes beyond gestation the newest mature option needs before the chain creates its
     child (< 0: the algorithm's: 2 for dsc and dual, as DSC's initiation period; 0 otherwise)"""
 
-    def __post_init__(self):
-        _check_section(self)
-
 
 @dataclass(frozen=True)
-class FrontierSection:
+class FrontierSection(Section):
     """The chain's frontier (beyond the paper; dscpp_jax.frontier): uncovered free space
     within `radius` of an option's examples, estimated from `candidates` diverse-start draws; a
     row's frontier is open with at least `min_open` of them."""
@@ -301,12 +290,9 @@ class FrontierSection:
     min_open: int = 4
     """draws on a row's frontier for it to count as open"""
 
-    def __post_init__(self):
-        _check_section(self)
-
 
 @dataclass(frozen=True)
-class EvalSection:
+class EvalSection(Section):
     """Evaluation: separate episodes between train_step calls (host side) and in-band
     episodes inside train_step."""
 
@@ -329,9 +315,6 @@ class EvalSection:
     (B + E); False: a second physics step. MJX (JAX) ant physics may round a B + E batch
     differently, so training then matches a run without in-band environments only to rounding;
     False keeps it bitwise. Point mass and MuJoCo Warp: exact either way"""
-
-    def __post_init__(self):
-        _check_section(self)
 
 
 SECTIONS: dict[str, type] = dict(task=TaskSection, run=RunSection, td3=TD3Section,
