@@ -1424,6 +1424,31 @@ def failure_lines(data: Data) -> list:
     return out
 
 
+def group_wall(data: Data, exp) -> Optional[float]:
+    """A group's training wall-clock in seconds (its seeds share one program: the largest
+    `wall_clock` of their last rows, which counts every resumed call); None without rows."""
+    walls = [r["wall_clock"] for r in map(_last_row, data.dirs(exp)) if r is not None]
+    return float(max(walls)) if walls else None
+
+
+def training_time_lines(data: Data) -> list:
+    """A table of the training wall-clock per figure (the sum over the groups it draws) and the
+    total over every group once; groups trained beside others on one device count their own
+    elapsed time."""
+    walls = {exp: group_wall(data, exp) for exp in data.info}
+    out = ["| figure | groups with runs | training wall-clock (h) |", "|---|---:|---:|"]
+    for fig in FIGS:
+        exps = [e for e in dict.fromkeys(data.figs.get(fig, ())) if walls.get(e) is not None]
+        if exps:
+            total = sum(walls[e] for e in exps)
+            out.append(f"| {fig} | {len(exps)} | {total / 3600:.2f} |")
+    have = [w for w in walls.values() if w is not None]
+    if not have:
+        return []
+    out.append(f"| all (each group once) | {len(have)} | {sum(have) / 3600:.2f} |")
+    return out
+
+
 # what each figure of the paper shows, for the README's figure list
 FIG_CAPTIONS = {
     "6": "success rate from the task start against episodes, every learner on each maze at "
@@ -1448,17 +1473,16 @@ def write_readme(data: Data, args, figures: dict, status: dict) -> str:
     if args.env_map:   # e.g. the point-mass twins: say so before anything else
         title += (" on other environments ("
                   + ", ".join(f"{k} -> {v}" for k, v in args.env_map.items()) + ")")
-    drawn = [f for f in FIGS if figures.get(f)]
     lines = [
         title,
         "",
         "Each claim of the paper (Figures 4-6, appendix Figures 1-3) checked against seed groups "
         "trained by `experiments/reproduce.py` under "
         f"`{_shown_path(args.runs_root)}`; "
-        + ("every number below comes from those runs' `metrics.csv`, `eval.json` and "
-           "checkpoints (or the figure evaluations cached beside them). "
-           + ("Drawn from the runs as they are with (without `--report-only` the same command "
-              "trains the runs that are not finished):" if args.report_only else
+        + ("every number comes from their `metrics.csv`, `eval.json` and checkpoints (or "
+           "figure evaluations cached beside them). "
+           + ("Drawn from the runs as they are with (without `--report-only` it trains what is "
+              "unfinished):" if args.report_only else
               "Made with (re-run it to continue unfinished runs and refresh this page):")
            if anything else
            "**no run exists there yet, so every claim below is *not run*.** This page was "
@@ -1482,18 +1506,16 @@ def write_readme(data: Data, args, figures: dict, status: dict) -> str:
     ]
     for fig, claim, measured, st in claims(data, args, figures):
         lines.append(f"| {fig} | {claim} | {measured} | {st} |")
-    lines += ["", "## Figures", ""]
+    lines += ["", "## Figures"]
     for fig in FIGS:
         p = figures.get(fig)
         if p:
-            csvp = os.path.splitext(os.path.basename(p))[0] + ".csv"
-            lines.append(f"- Figure {fig}: [`{os.path.basename(p)}`]({os.path.basename(p)}), "
-                         f"numbers in [`{csvp}`]({csvp}): {FIG_CAPTIONS[fig]}")
+            name = os.path.basename(p)
+            csvp = os.path.splitext(name)[0] + ".csv"
+            lines += ["", f"Figure {fig}: {FIG_CAPTIONS[fig]} (numbers: [`{csvp}`]({csvp}))",
+                      "", f"![Figure {fig}]({name})"]
         else:
-            lines.append(f"- Figure {fig}: not drawn (no runs yet)")
-    for fig in drawn:
-        name = os.path.basename(figures[fig])
-        lines += ["", f"![Figure {fig}: {FIG_CAPTIONS[fig]}]({name})"]
+            lines += ["", f"Figure {fig}: not drawn (no runs yet)"]
     lines += [
         "",
         "## Protocol",
@@ -1512,6 +1534,11 @@ def write_readme(data: Data, args, figures: dict, status: dict) -> str:
         lines += ["", "How each group's seeds end (`python -m dscpp_jax.cli diagnose GROUP_DIR` "
                   "gives the row per seed; the verdicts are explained in `docs/cli.md`, diagnose):", ""]
         lines += why
+    times = training_time_lines(data)
+    if times:
+        lines += ["", "Training time, from each group's `metrics.csv` (`wall_clock` at its last "
+                  "row; the device of each run is in its `group.json`):", ""]
+        lines += times
     other = mismatch_lines(data, args)
     if other:
         lines += ["", "Groups made with other settings than this version's preset and this "

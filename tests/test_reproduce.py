@@ -104,8 +104,12 @@ def test_reproduce_trains_draws_reports_then_skips(tmp_path, capsys, monkeypatch
     readme = open(os.path.join(out, "README.md")).read()
     assert readme.startswith("# The paper's figures, reproduced on other environments "
                              "(u_maze -> point_u_maze, ant_reacher -> point_ant_reacher)")
-    table = [l for l in readme.splitlines() if l.startswith("| ") and not l.startswith("| figure")]
+    claims_part = readme.split("## Claims", 1)[1].split("## Figures", 1)[0]
+    table = [l for l in claims_part.splitlines()
+             if l.startswith("| ") and not l.startswith("| figure")]
     figs = [l.split("|")[1].strip() for l in table]
+    times = readme.split("Training time", 1)[1].splitlines()
+    assert any(l.startswith("| all (each group once) | 6 |") for l in times)
     assert set(figs) == {"4", "5", "6", "A1", "A2", "A3"}
     ok = ("reproduced", "not reproduced", "incomplete (runs missing or not finished)", "not run")
     for line in table:
@@ -114,7 +118,8 @@ def test_reproduce_trains_draws_reports_then_skips(tmp_path, capsys, monkeypatch
     a2 = next(l for l in table if l.startswith("| A2 |"))
     assert "one shared critic" in a2 and "one critic per option" in a2 and "point_u_maze" in a2
     assert a2.endswith(("| reproduced |", "| not reproduced |"))   # both arms finished
-    assert "not implemented" not in readme and "[`figA2.png`](figA2.png)" in readme
+    assert "not implemented" not in readme and "![Figure A2](figA2.png)" in readme \
+        and "[`figA2.csv`](figA2.csv)" in readme
     # only two of Figure 6's six algorithms ran: that claim cannot be settled
     assert any(l.startswith("| 6 | u_maze: MB-DSC++ and MF-DSC++ outperform") and "incomplete"
                in l for l in table)
@@ -785,3 +790,40 @@ def test_a_figure_takes_its_seeds_from_a_larger_group(tmp_path, capsys):
     assert reproduce.train_one(exp, args, None) == "dry-run"
     out = capsys.readouterr().out
     assert "point_u_maze-dsc-g0-1: would start" in out and "--seeds 0-1" in out
+
+
+def test_training_time_sums_each_groups_last_wall_clock_per_figure(tmp_path):
+    """The README's training-time table: a group's time is the largest `wall_clock` of its seeds'
+    last rows; a figure sums its groups; the total counts a group two figures share once."""
+    from dscpp_jax.config import preset
+    from dscpp_jax.run_logging import RunLogger
+    runs = tmp_path / "runs"
+    args = reproduce.build_parser().parse_args(
+        ["--runs-root", str(runs), "--out", str(tmp_path / "out"), "--seeds", "0-1",
+         "--episodes", "30", "--env-map", "u_maze=point_u_maze"])
+    args.env_map = {"u_maze": "point_u_maze"}
+
+    def group(algo, walls):
+        cfg = _flat(preset("fast", "point_u_maze", algo, td3_dtype="float32"))
+        g = runs / f"point_u_maze-{algo}-g0-1"
+        g.mkdir(parents=True)
+        (g / "group.json").write_text(json.dumps({"seeds": [0, 1], "config": cfg}))
+        for s, last in enumerate(walls):
+            log = RunLogger(str(g / f"s{s}"))
+            for j, w in enumerate((1.0, last), 1):
+                log.log({"iteration": j, "env_steps": 100 * j, "episodes": 10 * j,
+                         "wall_clock": w})
+            log.close()
+
+    group("dsc", [3600.0, 3000.0])
+    group("mf_dscpp", [1800.0, 1800.0])
+    dsc, mf = (reproduce.Exp("u_maze", a, 30, "0-1") for a in ("dsc", "mf_dscpp"))
+    untrained = reproduce.Exp("u_maze", "dual", 30, "0-1")
+    data = reproduce.Data(args, {"5": [dsc, mf, untrained], "A3": [dsc]})
+    assert reproduce.group_wall(data, dsc) == 3600.0
+    assert reproduce.group_wall(data, untrained) is None
+    lines = reproduce.training_time_lines(data)
+    assert "| 5 | 2 | 1.50 |" in lines
+    assert "| A3 | 1 | 1.00 |" in lines
+    assert lines[-1] == "| all (each group once) | 2 | 1.50 |"
+    assert not any(line.startswith("| 6 ") for line in lines)   # no runs: no row
