@@ -309,22 +309,11 @@ def frontier_candidates(config: Config, env, key):
     return jax.vmap(env.sample_start)(jax.random.split(key, config.frontier.candidates))
 
 
-def frontier_scale(config: Config, chain) -> jax.Array:
-    """float32 scalar: the share of the configured radii that the frontier starts use now (1 but
-    while a link in gestation keeps failing with `frontier.shrink_executions` > 0;
-    `frontier.shrink_scale`)."""
-    f = config.frontier
-    return frontier.shrink_scale(chain, f.shrink_executions, f.shrink_factor)
-
-
 def frontier_pool(config: Config, env, chain, key):
     """(candidates (M, 2), pool (M,) bool): where this iteration's frontier starts come from."""
     cand = frontier_candidates(config, env, key)
-    radius, inner = config.frontier.radius, config.frontier.inner_radius
-    if config.frontier.shrink_executions > 0:      # off: the configured radii, as numbers
-        scale = frontier_scale(config, chain)
-        radius, inner = radius * scale, inner * scale
-    return cand, frontier.start_pool(chain, frontier.frontier_probe(chain, cand, radius, inner))
+    return cand, frontier.start_pool(chain, frontier.frontier_probe(
+        chain, cand, config.frontier.radius, config.frontier.inner_radius))
 
 
 def diverse_starts(config: Config, env, k_start, B: int, front=None):

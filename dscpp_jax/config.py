@@ -289,13 +289,6 @@ class FrontierSection(Section):
     """diverse-start draws the frontier is estimated from"""
     min_open: int = 4
     """draws on a row's frontier for it to count as open"""
-    shrink_executions: int = 0
-    """frontier starts close in on a stalled link: every this many failed executions of the link
-    in gestation, the start pool's radius and inner radius are multiplied by `shrink_factor`
-    (down to `frontier.SHRINK_FLOOR` of the configured ones); back to the configured ones when
-    the link matures or a new link starts (0: off)"""
-    shrink_factor: float = 0.5
-    """what each shrink multiplies the start pool's radii by (in (0, 1))"""
 
 
 @dataclass(frozen=True)
@@ -352,8 +345,6 @@ FLAT_NAMES: dict[str, tuple[str | None, str]] = {
     "frontier_inner_radius": ("frontier", "inner_radius"),
     "frontier_candidates": ("frontier", "candidates"),
     "frontier_min_open": ("frontier", "min_open"),
-    "frontier_shrink_executions": ("frontier", "shrink_executions"),
-    "frontier_shrink_factor": ("frontier", "shrink_factor"),
     "eval_prefer_pessimistic": ("eval", "prefer_pessimistic"), "td3_hidden": ("td3", "hidden"),
     "td3_batch_size": ("td3", "batch_size"), "td3_updates_per_step": ("td3", "updates_per_step"),
     "td3_sample_block": ("td3", "sample_block"), "td3_lr": ("td3", "lr"),
@@ -573,16 +564,12 @@ class Config:
     def inert_fields(self) -> frozenset:
         """Fields (flat names) this config's other settings leave without effect (comparing two
         configs, a difference in them changes nothing): the chain's frontier's parameters where
-        the frontier is off, the frontier starts' inner radius and shrink where only frontier
-        parents are on, and the shrink factor where the shrink is off."""
-        shrink = {"frontier_shrink_executions", "frontier_shrink_factor"}
+        the frontier is off, and the frontier starts' inner radius where only frontier parents
+        are on."""
         if not self.frontier_on:
             return frozenset({"frontier_radius", "frontier_inner_radius", "frontier_candidates",
-                              "frontier_min_open"} | shrink)
-        if self.frontier.start_prob == 0:
-            return frozenset({"frontier_inner_radius"} | shrink)
-        return frozenset() if self.frontier.shrink_executions > 0 else frozenset(
-            {"frontier_shrink_factor"})
+                              "frontier_min_open"})
+        return frozenset() if self.frontier.start_prob > 0 else frozenset({"frontier_inner_radius"})
 
     # ------------------------------------------------------------------------------------------
     def get(self, name: str) -> Any:
@@ -738,16 +725,6 @@ class Config:
         need(self.frontier.candidates >= 1 and self.frontier.min_open >= 1,
              f"frontier_candidates={self.frontier.candidates} and frontier_min_open="
              f"{self.frontier.min_open} must be >= 1")
-        need(self.frontier.shrink_executions >= 0,
-             f"frontier_shrink_executions={self.frontier.shrink_executions} must be >= 0 (0: off; "
-             f"e.g. 100 shrinks the frontier starts' radii every 100 failed executions of the "
-             f"link in gestation)")
-        need(0.0 < float(self.frontier.shrink_factor) < 1.0,
-             f"frontier_shrink_factor={self.frontier.shrink_factor} must be in (0, 1) (what each "
-             f"shrink multiplies the frontier starts' radii by; e.g. 0.5)")
-        need(self.frontier.shrink_executions == 0 or self.frontier.start_prob > 0,
-             "frontier_shrink_executions > 0 shrinks the pool that frontier starts are drawn "
-             "from: it needs frontier_start_prob > 0")
         need(self.td3.shared_critic or not self.model_based,
              f"shared_critic=False (one TD3 per option) is implemented for the model-free "
              f"algorithms only ({', '.join(a for a in ALGOS if a not in MODEL_BASED_ALGOS)}): "

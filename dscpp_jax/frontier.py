@@ -20,14 +20,6 @@ of one probe address that:
   branches end in dead ends; the policy over options still walks the rows in increasing index
   (every parent is older than its child).
 
-A stalled link (one that succeeds only from close to its target, while frontier starts keep at
-least ``inner`` away) can pull its frontier starts in (``Config.frontier.shrink_executions``,
-off by default): :func:`shrink_scale` multiplies both radii of the start pool by
-``shrink_factor`` for every ``shrink_executions`` failed executions of the link in gestation,
-down to ``SHRINK_FLOOR`` of the configured radii. It is read off the chain's own counters (the
-link's executions and successes), so it needs no state of its own: it is back at 1 when the link
-matures, when a new link starts and when a re-targeted link's counters are cleared.
-
 The probe is a Monte Carlo estimate from candidate states drawn by the env's diverse-start sampler
 (uniform over free space, the same knowledge diverse starts already use): candidate ``m`` is on the
 frontier of row ``k`` when no mature option's initiation set (optimistic OR pessimistic) holds it
@@ -43,39 +35,22 @@ import jax.numpy as jnp
 from dscpp_jax.options import GESTATION, GOAL, MATURE, Chain, add_option, check_start, classify_all, \
     clear_row, mature_options
 
-SHRINK_FLOOR = 1.0 / 8.0
-"""The frontier starts' radii shrink (:func:`shrink_scale`) to no less than this share of the
-configured ones (three halvings: radius 6, inner 3 -> 0.75, 0.375)."""
 
-
-def _traced(x) -> bool:
-    return isinstance(x, jax.core.Tracer)
-
-
-def _squared(x):
-    """x squared: a Python float where x is concrete (as the probe always computed it), else a
-    traced float32 scalar."""
-    return float(x) ** 2 if not _traced(x) else jnp.square(jnp.asarray(x, jnp.float32))
-
-
-def frontier_probe(chain: Chain, cand_xy, radius, inner=0.0) -> jax.Array:
+def frontier_probe(chain: Chain, cand_xy, radius: float, inner: float = 0.0) -> jax.Array:
     """(K, M) bool: candidate m (``cand_xy`` (M, 2)) is uncovered free space within ``radius`` of
     mature row k's positive states inside k's pessimistic region, and no nearer than ``inner`` to
-    any of them (False for other rows). ``radius`` and ``inner`` are numbers (checked here) or
-    traced scalars (a seed's shrunk radii, :func:`shrink_scale`; the caller keeps
-    0 <= inner < radius)."""
+    any of them (False for other rows)."""
     cand = jnp.asarray(cand_xy, jnp.float32)
     if cand.ndim != 2 or cand.shape[-1] != 2:
         raise ValueError(f"frontier_probe: cand_xy must have shape (M, 2), got {cand.shape}")
-    if not (_traced(radius) or _traced(inner)) and (
-            not float(radius) > 0 or not 0 <= float(inner) < float(radius)):
+    if not float(radius) > 0 or not 0 <= float(inner) < float(radius):
         raise ValueError(f"frontier_probe: need 0 <= inner < radius, got inner={inner}, "
                          f"radius={radius}")
     mature = chain.status == MATURE
     ini = jax.vmap(lambda p: classify_all(chain, p)[0])(cand)            # (M, K)
     uncovered = ~jnp.any(ini & mature[None, :], axis=1)                     # (M,)
     K, P, L = chain.pos_xy.shape[:3]
-    r2, i2 = _squared(radius), _squared(inner)
+    r2, i2 = float(radius) ** 2, float(inner) ** 2
 
     def row_near(args):
         xy, ok = args                                                       # (P, L, 2), (P, L)
@@ -97,23 +72,6 @@ def gestation_row(chain: Chain) -> jax.Array:
     idx = jnp.arange(chain.cfg.max_options)
     gest = (chain.status == GESTATION) & (idx > GOAL)
     return jnp.where(gest.any(), jnp.argmax(gest), -1).astype(jnp.int32)
-
-
-def shrink_scale(chain: Chain, every: int, factor: float, floor: float = SHRINK_FLOOR) -> jax.Array:
-    """float32 scalar: what the frontier starts' radii are multiplied by, ``factor`` to the power
-    of the link in gestation's failed executions (executions - successes) // ``every``, no less
-    than ``floor``; 1 while no link is in gestation. The link's counters start at 0 when it is
-    created (and when a re-targeted link is cleared), and once it matures another link (or none)
-    is in gestation, so the radii are back at the configured ones then. ``every`` (static) <= 0:
-    always 1."""
-    if every <= 0:
-        return jnp.float32(1.0)
-    g = gestation_row(chain)
-    gc = jnp.clip(g, 0)
-    failed = jnp.maximum(chain.executions[gc] - chain.successes[gc], 0)
-    n = jnp.where(g >= 0, failed // every, 0).astype(jnp.float32)
-    scale = jnp.power(jnp.float32(factor), n)
-    return jnp.maximum(scale, jnp.float32(floor)).astype(jnp.float32)
 
 
 def start_pool(chain: Chain, probe: jax.Array) -> jax.Array:

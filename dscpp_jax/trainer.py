@@ -48,8 +48,7 @@ from dscpp_jax import acting, learning
 # GLOBAL_OPTION and GOAL_OPTION are re-exported: part of trainer's API
 from dscpp_jax.acting import (FRONTIER_KEY_SALT, GLOBAL_OPTION, GOAL_OPTION, NO_OPTION,  # noqa
                               ExecState, InbandState, all_seeds, any_seed, choose_options,
-                              diverse_starts, exec_init, frontier_pool, frontier_scale,
-                              inband_act,
+                              diverse_starts, exec_init, frontier_pool, inband_act,
                               inband_metrics, inband_record, option_end,
                               options_terminate, policy_actions, push_traj,
                               random_action_probs, record_outcomes)
@@ -365,7 +364,6 @@ def rollout(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[st
     front = None
     if config.hierarchical and config.frontier.start_prob > 0:
         front = frontier_pool(config, env, state.chain, jax.random.fold_in(key, FRONTIER_KEY_SALT))
-        front_scale = frontier_scale(config, state.chain)    # the pool's radii / the configured
 
     def body(carry, k):
         es, ex, chain, replay, model_replay, acc, ib = carry
@@ -515,8 +513,6 @@ def rollout(state: TrainState, key, seed_axis=None) -> Tuple[TrainState, Dict[st
     }
     if front is not None:
         metrics["frontier/pool"] = jnp.sum(front[1]).astype(jnp.float32)
-        if config.frontier.shrink_executions > 0:
-            metrics["frontier/radius_scale"] = front_scale
     if inband is not None:
         metrics.update(inband_metrics(config, inband))
     return state, metrics

@@ -87,14 +87,11 @@ def test_presets_keep_paper_constants():
     assert (f.frontier.start_prob, f.frontier.parent) == (0.0, False)
     assert preset("fast", "medium", "mf_dscpp", frontier_start_prob=0.0).frontier.parent
     # the frontier's parameters count only where the frontier is on
-    shrink = {"frontier_shrink_executions", "frontier_shrink_factor"}
     assert f.inert_fields() == {"frontier_radius", "frontier_inner_radius",
-                                "frontier_candidates", "frontier_min_open"} | shrink
-    assert preset("fast", "medium", "mb_dscpp").inert_fields() == {"frontier_shrink_factor"}
-    assert preset("fast", "medium", "mb_dscpp",
-                  frontier_shrink_executions=100).inert_fields() == set()
+                                "frontier_candidates", "frontier_min_open"}
+    assert preset("fast", "medium", "mb_dscpp").inert_fields() == set()
     assert preset("fast", "medium", "mb_dscpp", frontier_start_prob=0.0).inert_fields() == {
-        "frontier_inner_radius"} | shrink
+        "frontier_inner_radius"}
     # every preset of every env and algorithm is a valid config as it comes
     from dscpp_jax import envs
     from dscpp_jax.config import ALGOS
