@@ -13,10 +13,13 @@ from dscpp_jax import acting as A
 from dscpp_jax import trainer as T
 from dscpp_jax.config import Config
 from dscpp_jax.evaluate import evaluate_episodes
-from tests.trainer_fixtures import assert_trees_equal, tiny
+from tests.trainer_fixtures import TINY, assert_trees_equal, tiny
 
 E = 3
 ITERS = 7   # 4 envs x 20 steps, 100-step episodes: warm-up ends in iteration 5
+# td3_her with in-band envs: the checkpoint, seed-group, command-line and physics-path tests
+# share its train_step and group programs (each compile costs more than their iterations)
+TD3_INBAND = dict(inband_eval_envs=E, inband_eval_window=5, steps_per_iter=40)
 
 
 def _run(cfg, iters, seed=0):
@@ -157,7 +160,7 @@ def test_inband_episodes_equal_evaluate_episodes(mb_runs):
 
 
 def test_checkpoint_resume_continues_exactly(tmp_path):
-    cfg = tiny("td3_her", inband_eval_envs=E, inband_eval_window=5, steps_per_iter=40)
+    cfg = tiny("td3_her", **TD3_INBAND)
     s = T.init(jax.random.PRNGKey(3), cfg)
     for _ in range(2):
         s, _ = T.train_step(s)
@@ -193,7 +196,7 @@ def test_seed_group_with_inband_equals_separate_runs(tmp_path):
     in-band state and metrics equal its separate run (floats to the seed-group tolerance, counts
     exactly); a seed marked inactive keeps its in-band state."""
     from dscpp_jax import seed_group as SG
-    cfg = tiny("td3_her", inband_eval_envs=E, inband_eval_window=5, steps_per_iter=40)
+    cfg = tiny("td3_her", **TD3_INBAND)
     g = SG.init_group([0, 1], cfg)
     gm = []
     for _ in range(3):
@@ -248,21 +251,21 @@ def test_checkpoints_written_before_the_inband_field_restore(tmp_path):
 
 
 def test_cli_logs_inband_metrics(tmp_path, capsys):
-    """`--set inband_eval_envs=2`: metrics.csv has the inband/* columns every iteration and the
+    """`--set inband_eval_envs=3`: metrics.csv has the inband/* columns every iteration and the
     per-evaluation line shows the in-band success."""
     from dscpp_jax.cli import main
     from dscpp_jax.run_logging import read_metrics
     run = str(tmp_path / "run")
     args = ["train", "--env", "point_u_maze", "--algo", "td3_her", "--total-steps", "480",
             "--eval-every", "3", "--no-progress"]
-    for kv in ("num_envs=4", "steps_per_iter=40", "episode_length=100", "warmup_episodes=2",
-               "td3_hidden=32", "td3_batch_size=32", "td3_updates_per_step=0.1",
-               "replay_capacity=2000", "eval_episodes=2", "inband_eval_envs=2"):
-        args += ["--set", kv]
+    host = ("total_env_steps", "eval_every", "checkpoint_every")    # given as flags above
+    for k, v in {**TINY, **TD3_INBAND}.items():   # the config of the tests above: compiled
+        if k not in host:
+            args += ["--set", f"{k}={v}"]
     assert main(args + ["--run-dir", run]) == 0
     m = read_metrics(run)
     assert len(m["iteration"]) == 3
-    assert m["inband/episodes"] == [0.0, 0.0, 2.0]
+    assert m["inband/episodes"] == [0.0, 0.0, float(E)]   # each in-band env's first episode
     assert all(np.isfinite(m["inband/success_rate"]))
     assert "inband_success" in capsys.readouterr().out
     # a seed group through the command line: each seed's metrics.csv has them too
@@ -270,7 +273,7 @@ def test_cli_logs_inband_metrics(tmp_path, capsys):
     assert main(args + ["--run-dir", group, "--seeds", "0-1"]) == 0
     for s in (0, 1):
         g = read_metrics(f"{group}/s{s}")
-        assert g["inband/episodes"] == [0.0, 0.0, 2.0]
+        assert g["inband/episodes"] == [0.0, 0.0, float(E)]
     out = capsys.readouterr().out
     assert "inband_success mean" in out
     assert "episodes/seed " in out          # per seed (min-max), as env_steps/seed beside it
@@ -289,8 +292,9 @@ def test_second_physics_step_path_equals_the_batched_one():
     step is per env) the in-band state is that of the batched path."""
     cfg = tiny("td3_her", steps_per_iter=40)
     off, _, _ = _run(cfg, 3)
-    sep, m_sep, _ = _run(cfg.override(inband_eval_envs=E, inband_eval_batched=False), 3)
-    bat, m_bat, _ = _run(cfg.override(inband_eval_envs=E), 3)
+    on = tiny("td3_her", **TD3_INBAND)           # the batched path's program: compiled above
+    sep, m_sep, _ = _run(on.override(inband_eval_batched=False), 3)
+    bat, m_bat, _ = _run(on, 3)
     assert not T.inband_batched(sep.config) and T.inband_batched(bat.config)
     assert_trees_equal(off, sep.replace(inband=None, config=off.config))
     assert_trees_equal(sep.inband, bat.inband)

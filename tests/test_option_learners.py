@@ -3,25 +3,24 @@ on the observation alone; mf_dscpp with shared_critic=false: goal-conditioned). 
 against a NumPy reference, each option learning only from its own transitions (one step per own
 new transition) while the global option learns from all, new options starting as the global
 option's copy, the per-option exploration schedule, region success and the global option's
-timeout, and dsc learning the point-mass U-maze."""
+timeout. dsc learning the point-mass U-maze is in tests/test_learning.py, with the other learning
+runs (at XLA's full optimisation, under which they execute faster)."""
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import dscpp_jax
 from dscpp_jax import acting as A
 from dscpp_jax import learning as L
 from dscpp_jax import trainer as T
-from dscpp_jax.config import preset
 from dscpp_jax.options import FREE, GESTATION, MATURE
 from dscpp_jax.replay import RegionStep, replay_add, replay_group_index, replay_init
 from dscpp_jax.td3 import (td3_copy_option, td3_init_per_option, td3_option, td3_target_noise,
                            td3_updates_options)
 from dscpp_jax.td3 import TD3Config
 from tests.numpy_nets import np_mlp, to_np
-from tests.trainer_fixtures import background_jobs, tiny
+from tests.trainer_fixtures import tiny
 
 OBS, ACT, K, NE, ROWS = 4, 2, 4, 4, 12
 OPTION_OF_ENV = (0, 1, 1, 2)      # env column e ran option OPTION_OF_ENV[e]; option 3 never ran
@@ -219,57 +218,3 @@ def test_region_options_succeed_anywhere_in_their_target_and_the_global_option_s
     ended, success = jax.jit(lambda e, p: A.option_end(cfg, env, chain, e, p, jnp.zeros(3)))(ex, xy)
     np.testing.assert_array_equal(np.asarray(ended), [True, True, False])
     np.testing.assert_array_equal(np.asarray(success), [False, True, False])
-
-
-# ------------------------------------------------------------------------------------------------
-# dsc learns the point-mass U-maze (in a worker process started with this module)
-# ------------------------------------------------------------------------------------------------
-LEARN_ITERS = 64
-LEARN_THRESHOLD = 0.75
-# Starts along the U's route to the goal, 2 to 16 units of path from it (the task start is 24):
-# the second and third corridors that the chain's options cover first.
-ROUTE_STARTS = np.array([[2, 8], [4, 8], [6, 8], [8, 8], [8, 6], [8, 4], [8, 2], [8, 0]],
-                        np.float32)
-
-
-def _learn_job(algo):
-    """The fast preset on the point U-maze with 200-step episodes (more episode starts, which a
-    learner without hindsight relabelling needs to find its sparse reward); every 4 iterations
-    from the 16th, evaluate deterministically from ROUTE_STARTS; stop at the first evaluation
-    with >= LEARN_THRESHOLD success. Returns (best success, env steps, options in the chain,
-    training episodes' success in the last iteration)."""
-    cfg = preset("fast", "point_u_maze", algo, seed=0, episode_length=200)
-    s = T.init(jax.random.PRNGKey(0), cfg)
-    best, m = 0.0, {}
-    for i in range(1, LEARN_ITERS + 1):
-        s, m = T.train_step(s)
-        if i >= 16 and i % 4 == 0:
-            summary, _ = dscpp_jax.evaluate(s, jax.random.PRNGKey(i), starts=ROUTE_STARTS)
-            best = max(best, summary["eval/success_rate"])
-            if best >= LEARN_THRESHOLD:
-                break
-    return best, int(s.counters.env_steps), int(s.chain.num_options), \
-        float(m["train/episode_success"])
-
-
-_JOBS = {"test_baselines_learn_point_u_maze[dsc]": ("dsc",)}
-
-
-@pytest.fixture(scope="module", autouse=True)
-def background(request, tmp_path_factory):
-    """The learning jobs of the selected tests, each started in a worker process of its own (a
-    fresh JAX) before the first test of this module runs; {test name: future}."""
-    yield from background_jobs(request, tmp_path_factory,
-                               {name: (_learn_job, args) for name, args in _JOBS.items()})
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize("algo", ["dsc"])
-def test_baselines_learn_point_u_maze(algo, background, request):
-    """A policy that learned nothing reaches the goal from none or one of the route starts; the
-    chain must have grown beyond the goal option to cover them."""
-    name = request.node.name
-    best, env_steps, num_options, train_success = (
-        background[name].result(timeout=1800) if name in background else _learn_job(*_JOBS[name]))
-    assert best >= LEARN_THRESHOLD, (best, env_steps, num_options, train_success)
-    assert num_options >= 3, num_options

@@ -33,7 +33,7 @@ TINY = ["num_envs=2", "steps_per_iter=10", "episode_length=40", "warmup_episodes
         "td3_updates_per_step=0.1", "replay_capacity=400", "model_capacity=400",
         "eval_episodes=2"]
 STEPS_PER_ITERATION = 20
-BUDGET_S = 20.0        # --time-budget of the budget tests
+BUDGET_S = 12.0        # --time-budget of the budget tests (past the start-up: iterations to stop)
 BUDGET_MARGIN_S = 25.0  # the final save and the process's exit on a loaded 2-core machine
 TIMEOUT_S = 300        # a command still running after this has hung
 
