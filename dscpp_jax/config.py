@@ -406,10 +406,11 @@ def unknown_fields_message(names) -> str:
 
 def _check_section(section) -> None:
     """Type-check every field of a section (`check_field` without the CHOICES values: a saved run
-    may hold a value this version dropped)."""
+    may hold a value this version dropped), naming a field as `section.field` (`TD3Section(
+    batch_size=...)` is `td3.batch_size`, not `batch_size` or `td3_batch_size`)."""
+    name = SECTION_NAMES[type(section)]
     for f in dataclasses.fields(section):
-        check_field(_FLAT_OF[SECTION_NAMES[type(section)], f.name], getattr(section, f.name),
-                    values=False)
+        check_field(f"{name}.{f.name}", getattr(section, f.name), values=False)
 
 
 def flat_config(d: dict) -> dict:
@@ -666,15 +667,18 @@ class Config:
              "integers, as --seeds takes them)")
         need(self.run.total_episodes >= 0, "total_episodes must be >= 0 (0: no episode limit)")
         need(self.task.goal_tolerance > 0, "goal_tolerance must be > 0")
-        need(0.0 < self.td3.discount <= 1.0, "discount must be in (0, 1]")
-        need(0.0 < self.mpc.discount <= 1.0, "mpc_discount must be in (0, 1]")
+        need(0.0 < self.td3.discount <= 1.0,
+             f"discount={self.td3.discount} (td3.discount) must be in (0, 1]")
+        need(0.0 < self.mpc.discount <= 1.0,
+             f"mpc_discount={self.mpc.discount} (mpc.discount) must be in (0, 1]")
         need(not self.td3.clip_targets or self.td3.discount < 1.0,
              "td3_clip_targets needs discount < 1 (with discount 1 the values have no lower "
              "bound); lower discount or set td3_clip_targets=false")
         need(0.0 <= self.td3.her_relabel_prob <= 1.0, "her_relabel_prob must be in [0, 1]")
         need(self.td3.random_action_prob <= 1.0, "random_action_prob must be <= 1")
-        need(self.td3.updates_per_step >= 0 and self.dynamics.updates_per_step >= 0,
-             "updates_per_step values must be >= 0")
+        for name in ("td3_updates_per_step", "dyn_updates_per_step"):
+            need(self.get(name) >= 0, f"{name}={self.get(name)} ({DOTTED_NAMES[name]}) must be "
+                 f">= 0 (gradient steps per stored env transition)")
         need(self.td3.sample_block >= 1,
              f"td3_sample_block must be >= 1 (1: one replay sample per gradient step), got "
              f"{self.td3.sample_block}")

@@ -11,9 +11,9 @@ within reach of its target and the chain stops (``experiments/results/README.md`
 of one probe address that:
 
 - **frontier starts** (``Config.frontier.start_prob``): a share of the training episodes starts in
-  uncovered free space within ``radius`` of the region of the option that the option in gestation
-  targets (and at least ``inner`` from it), where that option's executions can succeed (a reverse
-  curriculum over the chain);
+  uncovered free space within ``frontier.radius`` of the region of the option that the option in
+  gestation targets (and at least ``frontier.inner_radius`` from it), where that option's
+  executions can succeed (a reverse curriculum over the chain);
 - **frontier parents** (``Config.frontier.parent``): a new option targets the newest mature option
   whose frontier is still open, and an option in gestation whose target's frontier has closed (a
   filled dead end) is re-targeted there, its examples cleared. The chain becomes a tree whose

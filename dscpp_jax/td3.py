@@ -46,7 +46,9 @@ class TD3Config:
 
     Defaults follow Fujimoto et al. (2018) and the paper's appendix tables 1-2, except
     ``batch_size``: the authors' code used 256 while the paper's table says 100; pass
-    ``batch_size=100`` to reproduce the table.
+    ``batch_size=100`` to reproduce the table. (A run builds its TD3Config from the config's
+    ``td3`` section, ``TD3Config.from_section``, whose ``td3.batch_size``, flat
+    ``td3_batch_size``, is the table's 100 unless a preset or ``--set`` changes it.)
     """
 
     actor_lr: float = 3e-4

@@ -223,6 +223,25 @@ def test_field_types_are_checked_naming_the_field_value_and_type():
     assert Config(seed=np.int64(3)).run.seed == 3               # NumPy integers are integers
     with pytest.raises(ValueError, match="gestation='abc'"):
         preset("fast", "point_u_maze", "mb_dscpp", gestation="abc")
+    # a section built directly names its fields as section.field, the name it was given
+    with pytest.raises(ValueError, match=r"td3\.batch_size='x' \(str\); td3\.batch_size is an"):
+        C.TD3Section(batch_size="x")
+
+
+def test_value_errors_name_fields_a_user_can_type():
+    """Messages that concern a sectioned field give a name `--set` takes (flat) and, where two
+    sections have a field of that name, its section.field name too."""
+    for kw, says in (
+            (dict(td3_updates_per_step=-1.0), "td3_updates_per_step=-1.0 (td3.updates_per_step)"),
+            (dict(dyn_updates_per_step=-1.0),
+             "dyn_updates_per_step=-1.0 (dynamics.updates_per_step) must be >= 0"),
+            (dict(discount=0.0), "discount=0.0 (td3.discount) must be in (0, 1]"),
+            (dict(mpc_discount=1.5), "mpc_discount=1.5 (mpc.discount) must be in (0, 1]")):
+        with pytest.raises(ValueError) as e:
+            Config(**kw).validate()
+        assert says in str(e.value), str(e.value)
+        name = says.split("=", 1)[0]
+        assert name in C.FLAT_NAMES and C.DOTTED_NAMES[name] in says
 
 
 @pytest.mark.parametrize("name", sorted(C.CHOICES))
