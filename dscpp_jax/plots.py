@@ -34,7 +34,8 @@ def _plt():
     return plt
 
 
-def _draw_maze(ax, layout):
+def draw_maze(ax, layout):
+    """The maze of `layout` (MazeLayout) on axes `ax`: walls, bounds, start and goal."""
     for cx, cy, hx, hy in layout.wall_boxes:
         ax.add_patch(Rectangle((cx - hx, cy - hy), 2 * hx, 2 * hy, color="0.35", zorder=1))
     xmin, xmax, ymin, ymax = layout.bounds
@@ -54,7 +55,8 @@ def option_color(option: int, max_options: int) -> tuple:
     return tuple(float(c) for c in cmap(int(option) % cmap.N))
 
 
-def _layout(cfg):
+def maze_layout(cfg):
+    """The MazeLayout of the environment that `cfg` trains on."""
     return make_env(cfg).layout
 
 
@@ -76,7 +78,7 @@ def plot_trajectory(cfg, result, path: str, title: str = "", max_episodes: int =
     K = int(cfg.chain.max_options)
     cmap = plt.get_cmap("tab10" if K <= 10 else "tab20")
     fig, ax = plt.subplots(figsize=(7.6, 6))
-    _draw_maze(ax, _layout(cfg))
+    draw_maze(ax, maze_layout(cfg))
     used = set()
     for e in drawn:
         m = act[:, e] & (opt[:, e] >= 0)
@@ -110,11 +112,11 @@ def plot_classifiers(cfg, state, path: str, resolution: int = 80) -> str:
     """Each fitted option's optimistic region (filled) and pessimistic region (black contour),
     titled with its parent and how many of its training executions succeeded (all so far)."""
     plt = _plt()
-    layout = _layout(cfg)
+    layout = maze_layout(cfg)
     chain = state.chain
     if chain is None:
         fig, ax = plt.subplots(figsize=(5, 5))
-        _draw_maze(ax, layout)
+        draw_maze(ax, layout)
         ax.set_title(f"{cfg.algo}: flat agent, no options")
         _save(fig, path)
         return path
@@ -138,7 +140,7 @@ def plot_classifiers(cfg, state, path: str, resolution: int = 80) -> str:
         pes = np.asarray(dec(jax.tree_util.tree_map(lambda a: a[None], clf.pessimistic), grid))[0]
         opt = opt.reshape(gx.shape) if bool(clf.optimistic_fitted) else np.full(gx.shape, -1.0)
         pes = pes.reshape(gx.shape) if bool(clf.pessimistic_fitted) else np.full(gx.shape, -1.0)
-        _draw_maze(ax, layout)
+        draw_maze(ax, layout)
         ax.contourf(gx, gy, (opt > 0).astype(float), levels=[0.5, 1.5], colors=["tab:red"],
                     alpha=0.45, zorder=2)
         if (pes > 0).any() and (pes < 0).any():
@@ -157,7 +159,9 @@ def plot_classifiers(cfg, state, path: str, resolution: int = 80) -> str:
     return path
 
 
-def _curve(run_dir: str, column: str, x_column: str = "env_steps"):
+def metric_curve(run_dir: str, column: str, x_column: str = "env_steps"):
+    """(x, y) of metrics.csv's `column` against `x_column` in RUN_DIR, the rows where both are
+    finite (in-band rows only once a window finished); None when there are none."""
     try:
         m = read_metrics(run_dir)
     except FileNotFoundError:   # a run that has not logged an iteration yet
@@ -265,7 +269,7 @@ def plot_curves(run_dirs: Sequence[str], path: str, group: bool = True) -> str:
                                    if col == "eval/success_rate" else [])
         for name, runs in groups.items():
             for c_col, style, suffix in cols:
-                curves = [c for c in (_curve(r, c_col, xcol) for r in runs) if c is not None]
+                curves = [c for c in (metric_curve(r, c_col, xcol) for r in runs) if c is not None]
                 if not curves:
                     continue
                 xmax = min(c[0][-1] for c in curves)
@@ -308,8 +312,8 @@ def plot_seeds(run_dirs: Sequence[str], path: str, cols: int = 5) -> str:
                              sharex=True, sharey=True)
     for ax, (label, run) in zip(axes.flat, runs):
         name = label or os.path.basename(os.path.normpath(run))
-        ev = _curve(run, "eval/success_rate", "episodes")
-        ib = _curve(run, "inband/success_rate", "episodes")
+        ev = metric_curve(run, "eval/success_rate", "episodes")
+        ib = metric_curve(run, "inband/success_rate", "episodes")
         if ib is not None:
             ax.plot(ib[0], ib[1], "--", color="C1", lw=1, label="in-band")
         if ev is not None:

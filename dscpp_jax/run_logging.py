@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import errno
+import io
 import json
 import math
 import os
@@ -14,7 +15,12 @@ import sys
 import tempfile
 import time
 import uuid
+from importlib.metadata import version
 from typing import Any, Mapping, Optional
+
+import jax
+
+from dscpp_jax.config import Config
 
 BASE_COLUMNS = ("iteration", "env_steps", "episodes", "wall_clock")
 RUN_DIR_LAYOUT = ("a run directory, as `train` makes it, holds config.json, metrics.csv and "
@@ -175,7 +181,6 @@ def read_startup(run_dir: str) -> list:
 
 
 def _csv_text(rows) -> str:
-    import io
     buf = io.StringIO()
     csv.writer(buf).writerows(rows)
     return buf.getvalue()
@@ -193,12 +198,10 @@ def library_versions() -> dict[str, str]:
     for mod in ("jax", "jaxlib", "flax", "optax", "chex", "orbax.checkpoint", "brax", "mujoco",
                 "numpy", "dscpp_jax"):
         try:
-            from importlib.metadata import version
             out[mod] = version(mod.replace(".", "-"))
         except Exception:  # noqa: BLE001 - not installed or no metadata
             continue
     try:
-        import jax
         out["jax_backend"] = jax.default_backend()
         out["devices"] = ", ".join(str(d) for d in jax.devices())
     except Exception:  # noqa: BLE001
@@ -225,7 +228,6 @@ def write_config(run_dir: str, config_dict: Mapping[str, Any], extra: Mapping[st
                  ) -> None:
     """config.json: the config, library versions, and every Config default of this version
     ("config_defaults"), so that a later version that dropped a field knows its "off" value."""
-    from dscpp_jax.config import Config
     payload = {"config": dict(config_dict), "versions": library_versions(),
                "config_defaults": Config().to_dict()}
     if extra:
@@ -259,7 +261,6 @@ def read_config(run_dir: str) -> dict:
 
 def load_config(run_dir: str):
     """The run's Config, checked against this version (see `Config.from_saved`)."""
-    from dscpp_jax.config import Config
     payload = read_config(run_dir)
     try:
         return Config.from_saved(payload["config"], payload.get("config_defaults"),

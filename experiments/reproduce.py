@@ -749,12 +749,12 @@ def curves(dirs, column: str, x: str = "episodes", inband: bool = True) -> list:
     evaluation (every iteration; the ant preset's default) where the runs have it, else from the
     periodic evaluations; ``inband=False`` keeps the evaluations' column (the final 100 episodes
     where evaluation runs only at the end)."""
-    from dscpp_jax.plots import _curve
+    from dscpp_jax.plots import metric_curve
     if inband and column == "eval/success_rate":
-        cs = [c for c in (_curve(d, "inband/success_rate", x) for d in dirs) if c is not None]
+        cs = [c for c in (metric_curve(d, "inband/success_rate", x) for d in dirs) if c is not None]
         if cs:
             return cs
-    return [c for c in (_curve(d, column, x) for d in dirs) if c is not None]
+    return [c for c in (metric_curve(d, column, x) for d in dirs) if c is not None]
 
 
 def mean_se(cs: list, max_points: int = 200):
@@ -1008,7 +1008,7 @@ def corner_eval(seed_dir: str, step: Optional[int]) -> Optional[dict]:
 def fig4(data: Data, out: str) -> Optional[str]:
     from matplotlib.collections import LineCollection
 
-    from dscpp_jax.plots import _draw_maze, _layout
+    from dscpp_jax.plots import draw_maze, maze_layout
     from dscpp_jax.run_logging import load_config
     exps = data.figs["4"]
     results, rows = {}, []
@@ -1037,7 +1037,7 @@ def fig4(data: Data, out: str) -> Optional[str]:
             continue
         d, r = results[exp][0]
         cfg = load_config(d)
-        _draw_maze(ax, _layout(cfg))
+        draw_maze(ax, maze_layout(cfg))
         cmap = plt.get_cmap("tab10" if int(r["max_options"]) <= 10 else "tab20")
         for e in range(r["xy"].shape[1]):
             L = int(r["steps"][e])
@@ -1084,9 +1084,9 @@ def goal_regions(seed_dir: str, step: int, resolution: int, recompute: bool = Tr
 
     from dscpp_jax import svm
     from dscpp_jax.cli import load_run
-    from dscpp_jax.plots import _layout
+    from dscpp_jax.plots import maze_layout
     cfg, state = load_run(seed_dir, step)
-    xmin, xmax, ymin, ymax = _layout(cfg).bounds
+    xmin, xmax, ymin, ymax = maze_layout(cfg).bounds
     gx, gy = np.meshgrid(np.linspace(xmin, xmax, resolution), np.linspace(ymin, ymax, resolution))
     grid = jnp.asarray(np.stack([gx.ravel(), gy.ravel()], -1), jnp.float32)
     clf = jax.tree_util.tree_map(lambda a: a[1], state.chain.clf)   # row 1: the goal option
@@ -1120,7 +1120,7 @@ def _from_first_fitted(seed_dir: str, steps: list, resolution: int, recompute: b
 
 
 def figA1(data: Data, out: str) -> Optional[str]:
-    from dscpp_jax.plots import _draw_maze, _layout
+    from dscpp_jax.plots import draw_maze, maze_layout
     from dscpp_jax.run_logging import load_config
     k = data.args.a1_panels
     todo = []   # (exp, seed dir, checkpoints kept, checkpoints shown)
@@ -1139,7 +1139,7 @@ def figA1(data: Data, out: str) -> Optional[str]:
     rows = []
     for i, (exp, d, kept, steps) in enumerate(todo):
         cfg = load_config(d)
-        layout = _layout(cfg)
+        layout = maze_layout(cfg)
         for ax in axes[i]:
             ax.axis("off")
         for j, step in enumerate(steps):
@@ -1150,7 +1150,7 @@ def figA1(data: Data, out: str) -> Optional[str]:
                          int(r["episodes"]), a_opt, a_pes, int(data.finished(exp))])
             ax = axes[i, j]
             ax.axis("on")
-            _draw_maze(ax, layout)
+            draw_maze(ax, layout)
             if (r["opt"] > 0).any():
                 ax.contourf(r["gx"], r["gy"], (r["opt"] > 0).astype(float), levels=[0.5, 1.5],
                             colors=["darkred"], alpha=0.5, zorder=2)

@@ -279,7 +279,7 @@ def test_cli_logs_inband_metrics(tmp_path, capsys):
     assert "episodes/seed " in out          # per seed (min-max), as env_steps/seed beside it
     # the curves draw in-band success only from iterations where an in-band episode had finished
     from dscpp_jax import plots
-    x, y = plots._curve(run, "inband/success_rate", "iteration")
+    x, y = plots.metric_curve(run, "inband/success_rate", "iteration")
     assert x.tolist() == [3.0] and y.tolist() == m["inband/success_rate"][2:]
     out = str(tmp_path / "plots")
     assert main(["plot", "--curves-only", run, f"{group}/s0", f"{group}/s1", "--out", out]) == 0
