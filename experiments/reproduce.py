@@ -50,18 +50,34 @@ import csv
 import dataclasses
 import json
 import os
+import queue
 import re
 import shutil
 import subprocess
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from typing import Optional
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 if ROOT not in sys.path:
     sys.path.insert(0, ROOT)
 
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
+
+from dscpp_jax import diagnose, envs, svm
+from dscpp_jax.cli import (
+    deterministic_choice, load_run, parse_overrides, use_compile_cache, use_xla_flags)
+from dscpp_jax.config import (
+    Config, DSCPP_ALGOS, HIERARCHICAL_ALGOS, MEDIUM_MODEL_FREE_TD3, PAPER_BASELINES,
+    paper_rule_overrides, preset)
+from dscpp_jax.evaluate import evaluate
+from dscpp_jax.group_train import seed_dirs as all_seed_dirs
+from dscpp_jax.plots import draw_maze, maze_layout, metric_curve
+from dscpp_jax.run_logging import load_config, read_metrics
+from dscpp_jax.seed_group import format_seeds, parse_seeds
 
 FIGS = ("4", "5", "6", "A1", "A2", "A3")
 MAZES = ("u_maze", "medium", "four_rooms")
@@ -109,7 +125,6 @@ class Exp:
         return env_map.get(self.env, self.env)
 
     def name(self, env_map: dict) -> str:
-        from dscpp_jax.seed_group import format_seeds, parse_seeds
         sub = "-dp" if self.subgoal == "dp" else ""
         tag = f"-{self.tag}" if self.tag else ""
         seeds = format_seeds(parse_seeds(self.seeds))
@@ -144,7 +159,6 @@ def paper_rule_sets(maze: str, algo: str, args) -> tuple:
     """The --set pairs that train `algo` on `maze` (after --env-map) at the paper's rule: the
     preset's settings beyond the paper turned off (`config.paper_rule_overrides`: the chain's
     frontier, the medium maze's model-free TD3); () where the preset adds none."""
-    from dscpp_jax.config import paper_rule_overrides
     over = paper_rule_overrides(args.preset, args.env_map.get(maze, maze), algo)
     return tuple(f"{k}={_set_text(v)}" for k, v in over.items())
 
@@ -163,7 +177,6 @@ def plan(args) -> dict:
     """{figure: [Exp, ...]} for the requested figures. Figures 5, 6, A2 and A3 compare the
     learners at the paper's rule (`paper_exp`); Figure 6 also shows DSC++ with the preset's
     settings beyond the paper, where it has some, in panels of their own (`Exp.beyond`)."""
-    from dscpp_jax.config import DSCPP_ALGOS
     figs = parse_figs(args.fig)
     algos = set(_csv_list(args.algos, FIG6_ALGOS + ("dual",)))
     mazes = _csv_list(args.mazes, MAZES)
@@ -185,7 +198,6 @@ def plan(args) -> dict:
     # --a1-every iterations and keep them all (--a1-keep). With --a1-seeds equal to --seeds it
     # shares Figure 4's groups, which then do the same; otherwise it trains its own (by default
     # one seed, as the figure shows one run).
-    from dscpp_jax.seed_group import parse_seeds
     keep = (f"keep_checkpoints={args.a1_keep}", f"checkpoint_every={args.a1_every}")
     share = parse_seeds(args.a1_seeds) == parse_seeds(seeds)
     fig4 = [Exp("ant_reacher", args.fig4_algo, args.fig4_episodes, seeds, subgoal=s,
@@ -213,8 +225,7 @@ def plan(args) -> dict:
 # ------------------------------------------------------------------------------------------------
 def _overrides(pairs) -> dict:
     """`--set name=value` pairs as the training command line reads them."""
-    from dscpp_jax.cli import parse_overrides as parse
-    return parse(list(pairs))
+    return parse_overrides(list(pairs))
 
 
 def say(msg: str, flush: bool = True) -> None:
@@ -230,7 +241,6 @@ def group_dir(exp: Exp, args) -> str:
     rule and tag whose seeds include the asked ones (seeds 0-4 of a 15-seed group
     `medium-mf_dscpp-g0-14`: the seeds of a group are independent runs, so a figure may take
     some of them); else the named path, where a new group trains."""
-    from dscpp_jax.seed_group import parse_seeds
     path = os.path.join(args.runs_root, exp.name(args.env_map))
     if os.path.exists(path):
         return path
@@ -274,7 +284,6 @@ def _group_seeds(gdir: str) -> Optional[list]:
 def shown_name(exp: Exp, gdir: str) -> str:
     """A group's directory name for the README (in backticks), with the seeds taken from it
     where it holds more."""
-    from dscpp_jax.seed_group import format_seeds, parse_seeds
     name = os.path.basename(os.path.normpath(gdir))
     have = _group_seeds(gdir)
     want = sorted(parse_seeds(exp.seeds))
@@ -291,7 +300,6 @@ def checkpoint_steps(group_dir: str) -> list:
 
 def seed_dirs(group_dir: str) -> list:
     """The seed directories of a group that have logged at least one iteration."""
-    from dscpp_jax.group_train import seed_dirs as all_seed_dirs
     try:
         dirs = all_seed_dirs(group_dir)
     except (OSError, ValueError, KeyError):
@@ -300,7 +308,6 @@ def seed_dirs(group_dir: str) -> list:
 
 
 def _last_row(run_dir: str) -> Optional[dict]:
-    from dscpp_jax.run_logging import read_metrics
     try:
         m = read_metrics(run_dir)
     except (OSError, ValueError):
@@ -319,7 +326,6 @@ def _sets(exp: Exp, args) -> list:
 def schedule(exp: Exp, args) -> tuple:
     """(total_episodes, total_env_steps): the episode budget binds; the step cap is loose enough
     for it ((episodes + num_envs) x episode length) unless --total-steps gives one."""
-    from dscpp_jax.config import preset
     kw = _overrides(_sets(exp, args))
     kw.pop("total_env_steps", None)
     cfg = preset(args.preset, exp.run_env(args.env_map), exp.algo, **kw)
@@ -366,7 +372,6 @@ def _listed(names) -> str:
 def beyond_words(maze: str, args) -> str:
     """What the preset adds beyond the paper for DSC++ on `maze`, in a few words ("" if
     nothing)."""
-    from dscpp_jax.config import DSCPP_ALGOS, MEDIUM_MODEL_FREE_TD3, paper_rule_overrides
     over = {a: paper_rule_overrides(args.preset, args.env_map.get(maze, maze), a)
             for a in DSCPP_ALGOS}
     said = set().union(*over.values())
@@ -388,7 +393,6 @@ def _frontier_note(data, args) -> str:
     `dscpp_jax.config.paper_rule_overrides`), which are drawn with them on (Figure 6's panels
     "DSC++ beyond the paper"), and the ant preset's action penalty of the goal-conditioned
     model-free learners; "" where there is none."""
-    from dscpp_jax.config import PAPER_BASELINES, preset
     exps = list(data.info)
     parts = []
     off = {}
@@ -450,7 +454,6 @@ def config_mismatch(group_dir: str, exp: Exp, args) -> list:
     seed (the group's seeds are its own), the physics back end `auto` resolved to on the
     training host unless --set names it, and fields without effect in both configs
     (`Config.inert_fields`)."""
-    from dscpp_jax.config import Config, preset
     with open(os.path.join(group_dir, "group.json")) as f:
         have = json.load(f)["config"]
     kw = _overrides(_sets(exp, args))
@@ -701,7 +704,6 @@ def long_td3_seeds(args) -> Optional[str]:
 def check_slot_sizes(figs: dict, slots: list, args) -> None:
     """A group split over several GPUs needs a multiple of their number of seeds (groups are
     never padded): say so before anything trains. Finished groups are only skipped."""
-    from dscpp_jax.seed_group import parse_seeds
     env_map = args.env_map
     for e in dict.fromkeys(e for es in figs.values() for e in es
                            if args.beyond_paper or not e.beyond):
@@ -720,8 +722,6 @@ def check_slot_sizes(figs: dict, slots: list, args) -> None:
 def train_all(args, figs: dict) -> dict:
     """Train (or continue, or skip) every group the figures need, --jobs at a time (spread over
     the --gpus, round robin); {group name: status}."""
-    import queue
-    from concurrent.futures import ThreadPoolExecutor
     exps = list(dict.fromkeys(e for es in figs.values() for e in es
                               if args.beyond_paper or not e.beyond))
     exps.sort(key=lambda e: e.tag == "long")   # the 12,000-episode TD3 run last
@@ -749,7 +749,6 @@ def curves(dirs, column: str, x: str = "episodes", inband: bool = True) -> list:
     evaluation (every iteration; the ant preset's default) where the runs have it, else from the
     periodic evaluations; ``inband=False`` keeps the evaluations' column (the final 100 episodes
     where evaluation runs only at the end)."""
-    from dscpp_jax.plots import metric_curve
     if inband and column == "eval/success_rate":
         cs = [c for c in (metric_curve(d, "inband/success_rate", x) for d in dirs) if c is not None]
         if cs:
@@ -818,7 +817,6 @@ class Data:
     """What the runs hold, per experiment: seed dirs, finished or not."""
 
     def __init__(self, args, figs: dict):
-        from dscpp_jax.seed_group import parse_seeds
         self.args = args
         self.figs = figs
         self.info = {}
@@ -987,10 +985,7 @@ def corner_eval(seed_dir: str, step: Optional[int]) -> Optional[dict]:
     got = _cached(path, step)
     if got is not None or step is None:
         return got
-    import jax
 
-    from dscpp_jax.cli import load_run
-    from dscpp_jax.evaluate import evaluate
     cfg, state = load_run(seed_dir, step)
     _, res = evaluate(state, jax.random.PRNGKey(0), starts=np.asarray(CORNERS))
     steps = np.asarray(res.steps)
@@ -1008,8 +1003,6 @@ def corner_eval(seed_dir: str, step: Optional[int]) -> Optional[dict]:
 def fig4(data: Data, out: str) -> Optional[str]:
     from matplotlib.collections import LineCollection
 
-    from dscpp_jax.plots import draw_maze, maze_layout
-    from dscpp_jax.run_logging import load_config
     exps = data.figs["4"]
     results, rows = {}, []
     for exp in exps:
@@ -1079,12 +1072,7 @@ def goal_regions(seed_dir: str, step: int, resolution: int, recompute: bool = Tr
     got = _cached(path, step)
     if got is not None and (got["opt"].shape[0] == resolution or not recompute):
         return got
-    import jax
-    import jax.numpy as jnp
 
-    from dscpp_jax import svm
-    from dscpp_jax.cli import load_run
-    from dscpp_jax.plots import maze_layout
     cfg, state = load_run(seed_dir, step)
     xmin, xmax, ymin, ymax = maze_layout(cfg).bounds
     gx, gy = np.meshgrid(np.linspace(xmin, xmax, resolution), np.linspace(ymin, ymax, resolution))
@@ -1120,8 +1108,6 @@ def _from_first_fitted(seed_dir: str, steps: list, resolution: int, recompute: b
 
 
 def figA1(data: Data, out: str) -> Optional[str]:
-    from dscpp_jax.plots import draw_maze, maze_layout
-    from dscpp_jax.run_logging import load_config
     k = data.args.a1_panels
     todo = []   # (exp, seed dir, checkpoints kept, checkpoints shown)
     for e in data.figs["A1"]:
@@ -1410,7 +1396,6 @@ def failure_lines(data: Data) -> list:
     """One line per group with a skill chain: how many of its seeds got each
     `dscpp_jax.diagnose` verdict (solved, falls, weak link, broke late, ..., and unfinished for
     seeds without their final evaluation yet)."""
-    from dscpp_jax import diagnose
     out = []
     for info in data.info.values():
         rows = []
@@ -1675,7 +1660,6 @@ PAPER_ENVS = FIG6_MAZES + ("ant_reacher",)
 
 def check_args(args) -> None:
     """Every argument a train call or figure would trip over later, as one clear ValueError now."""
-    from dscpp_jax import envs
     for flag, text, known in (("--algos", args.algos, FIG6_ALGOS + ("dual",)),
                               ("--mazes", args.mazes, FIG6_MAZES)):
         if text is None:
@@ -1685,7 +1669,6 @@ def check_args(args) -> None:
         if bad or not items:
             what = f"unknown {', '.join(map(repr, bad))}" if bad else "names nothing"
             raise ValueError(f"{flag} {text!r}: {what}; choose from {', '.join(known)}")
-    from dscpp_jax.config import HIERARCHICAL_ALGOS
     if args.fig4_algo not in HIERARCHICAL_ALGOS:
         raise ValueError(f"--fig4-algo {args.fig4_algo!r}: Figure 4 compares subgoals of a skill "
                          f"chain; choose from {', '.join(HIERARCHICAL_ALGOS)}")
@@ -1702,7 +1685,6 @@ def check_args(args) -> None:
             raise ValueError(f"{flag} {v}: give a whole number >= 1")
     if args.total_steps is not None and args.total_steps < 1:
         raise ValueError(f"--total-steps {args.total_steps}: give a whole number >= 1")
-    from dscpp_jax.cli import parse_overrides
     parse_overrides(args.set)   # unknown fields and values of the wrong type, as `train --set` says
 
 
@@ -1714,7 +1696,6 @@ def main(argv: Optional[list] = None) -> int:
         check_args(args)
         args.env_map = dict(kv.split("=", 1) for kv in args.env_map_list)
         figs = plan(args)
-        from dscpp_jax.seed_group import parse_seeds
         parse_seeds(args.seeds)
         parse_seeds(args.a1_seeds)
         if args.long_td3_seeds is not None:
@@ -1762,7 +1743,6 @@ def main(argv: Optional[list] = None) -> int:
     # and without taking 75 % of every visible GPU up front: the evaluations are small, and train
     # calls of other jobs on the host may be using those GPUs
     os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
-    from dscpp_jax.cli import deterministic_choice, use_compile_cache, use_xla_flags
     use_xla_flags(deterministic_choice(argparse.Namespace(   # evaluates Figure 4's learner
         env="u_maze", set=args.set, algo=args.fig4_algo, deterministic=args.deterministic)))
     use_compile_cache(args.compile_cache)
