@@ -310,10 +310,16 @@ def frontier_candidates(config: Config, env, key):
 
 
 def frontier_pool(config: Config, env, chain, key):
-    """(candidates (M, 2), pool (M,) bool): where this iteration's frontier starts come from."""
+    """(candidates (M, 2), pool (M,) bool): where this iteration's frontier starts come from
+    (with `frontier.goal_starts`, also next to the task goal while the goal option is in
+    gestation, `frontier.goal_pool`)."""
     cand = frontier_candidates(config, env, key)
-    return cand, frontier.start_pool(chain, frontier.frontier_probe(
-        chain, cand, config.frontier.radius, config.frontier.inner_radius))
+    f = config.frontier
+    pool = frontier.start_pool(chain, frontier.frontier_probe(chain, cand, f.radius,
+                                                              f.inner_radius))
+    if f.goal_starts:
+        pool = pool | frontier.goal_pool(chain, cand, f.radius, f.inner_radius)
+    return cand, pool
 
 
 def diverse_starts(config: Config, env, k_start, B: int, front=None):

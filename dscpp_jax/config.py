@@ -289,6 +289,10 @@ class FrontierSection(Section):
     """diverse-start draws the frontier is estimated from"""
     min_open: int = 4
     """draws on a row's frontier for it to count as open"""
+    goal_starts: bool = False
+    """frontier starts for the goal option too: while it is in gestation (no mature option has
+    a frontier yet) they are drawn from free space within `radius` of the task goal and at least
+    `inner_radius` from it (False: frontier starts begin once the goal option is mature)"""
 
 
 @dataclass(frozen=True)
@@ -345,6 +349,7 @@ FLAT_NAMES: dict[str, tuple[str | None, str]] = {
     "frontier_inner_radius": ("frontier", "inner_radius"),
     "frontier_candidates": ("frontier", "candidates"),
     "frontier_min_open": ("frontier", "min_open"),
+    "frontier_goal_starts": ("frontier", "goal_starts"),
     "eval_prefer_pessimistic": ("eval", "prefer_pessimistic"), "td3_hidden": ("td3", "hidden"),
     "td3_batch_size": ("td3", "batch_size"), "td3_updates_per_step": ("td3", "updates_per_step"),
     "td3_sample_block": ("td3", "sample_block"), "td3_lr": ("td3", "lr"),
@@ -565,12 +570,13 @@ class Config:
     def inert_fields(self) -> frozenset:
         """Fields (flat names) this config's other settings leave without effect (comparing two
         configs, a difference in them changes nothing): the chain's frontier's parameters where
-        the frontier is off, and the frontier starts' inner radius where only frontier parents
-        are on."""
+        the frontier is off, and the frontier starts' inner radius and goal starts where only
+        frontier parents are on."""
         if not self.frontier_on:
             return frozenset({"frontier_radius", "frontier_inner_radius", "frontier_candidates",
-                              "frontier_min_open"})
-        return frozenset() if self.frontier.start_prob > 0 else frozenset({"frontier_inner_radius"})
+                              "frontier_min_open", "frontier_goal_starts"})
+        return frozenset() if self.frontier.start_prob > 0 else frozenset(
+            {"frontier_inner_radius", "frontier_goal_starts"})
 
     # ------------------------------------------------------------------------------------------
     def get(self, name: str) -> Any:
@@ -723,6 +729,9 @@ class Config:
         need(self.frontier.start_prob == 0 and not self.frontier.parent or self.hierarchical,
              f"frontier_start_prob and frontier_parent act on the skill chain: algo={self.algo!r} "
              f"has none; use one of {HIERARCHICAL_ALGOS} or leave them off")
+        need(not self.frontier.goal_starts or self.frontier.start_prob > 0,
+             "frontier_goal_starts=true draws frontier starts next to the task goal: it needs "
+             "frontier_start_prob > 0")
         need(0 <= self.frontier.inner_radius < self.frontier.radius,
              f"frontier_inner_radius={self.frontier.inner_radius} and frontier_radius="
              f"{self.frontier.radius}: need 0 <= frontier_inner_radius < frontier_radius")

@@ -13,7 +13,8 @@ of one probe address that:
 - **frontier starts** (``Config.frontier.start_prob``): a share of the training episodes starts in
   uncovered free space within ``frontier.radius`` of the region of the option that the option in
   gestation targets (and at least ``frontier.inner_radius`` from it), where that option's
-  executions can succeed (a reverse curriculum over the chain);
+  executions can succeed (a reverse curriculum over the chain); with ``frontier.goal_starts``
+  also for the goal option, next to the task goal (:func:`goal_pool`);
 - **frontier parents** (``Config.frontier.parent``): a new option targets the newest mature option
   whose frontier is still open, and an option in gestation whose target's frontier has closed (a
   filled dead end) is re-targeted there, its examples cleared. The chain becomes a tree whose
@@ -80,6 +81,22 @@ def start_pool(chain: Chain, probe: jax.Array) -> jax.Array:
     g = gestation_row(chain)
     p = chain.parent[jnp.clip(g, 0)]
     return probe[jnp.clip(p, 0)] & (g >= 0) & (p >= 0)
+
+
+def goal_pool(chain: Chain, cand_xy, radius: float, inner: float = 0.0) -> jax.Array:
+    """(M,) bool: while the goal option is in gestation, candidate m (``cand_xy`` (M, 2)) lies
+    within ``radius`` of the task goal and no nearer than ``inner`` to it (all False otherwise):
+    the goal option's frontier starts (``Config.frontier.goal_starts``). Before the goal option
+    matures no row has examples inside a pessimistic region, so :func:`start_pool` is empty."""
+    cand = jnp.asarray(cand_xy, jnp.float32)
+    if cand.ndim != 2 or cand.shape[-1] != 2:
+        raise ValueError(f"goal_pool: cand_xy must have shape (M, 2), got {cand.shape}")
+    if not float(radius) > 0 or not 0 <= float(inner) < float(radius):
+        raise ValueError(f"goal_pool: need 0 <= inner < radius, got inner={inner}, "
+                         f"radius={radius}")
+    d2 = jnp.sum((cand - chain.goal_xy[None, :]) ** 2, axis=-1)
+    near = (d2 <= float(radius) ** 2) & (d2 >= float(inner) ** 2)
+    return near & (chain.status[GOAL] == GESTATION)
 
 
 def frontier_parent(chain: Chain, is_open: jax.Array) -> jax.Array:

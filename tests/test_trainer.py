@@ -87,10 +87,10 @@ def test_presets_keep_paper_constants():
     assert preset("fast", "medium", "mf_dscpp", frontier_start_prob=0.0).frontier.parent
     # the frontier's parameters count only where the frontier is on
     assert f.inert_fields() == {"frontier_radius", "frontier_inner_radius",
-                                "frontier_candidates", "frontier_min_open"}
+                                "frontier_candidates", "frontier_min_open", "frontier_goal_starts"}
     assert preset("fast", "medium", "mb_dscpp").inert_fields() == set()
     assert preset("fast", "medium", "mb_dscpp", frontier_start_prob=0.0).inert_fields() == {
-        "frontier_inner_radius"}
+        "frontier_inner_radius", "frontier_goal_starts"}
     # every preset of every env and algorithm is a valid config as it comes
     from dscpp_jax import envs
     from dscpp_jax.config import ALGOS
