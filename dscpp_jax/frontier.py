@@ -37,16 +37,22 @@ from dscpp_jax.options import GESTATION, GOAL, MATURE, Chain, add_option, check_
     clear_row, mature_options
 
 
+def _checked_candidates(caller: str, cand_xy, radius: float, inner: float) -> jax.Array:
+    """``cand_xy`` as a float32 (M, 2) array, with the radii checked (ValueError naming `caller`)."""
+    cand = jnp.asarray(cand_xy, jnp.float32)
+    if cand.ndim != 2 or cand.shape[-1] != 2:
+        raise ValueError(f"{caller}: cand_xy must have shape (M, 2), got {cand.shape}")
+    if not float(radius) > 0 or not 0 <= float(inner) < float(radius):
+        raise ValueError(f"{caller}: need 0 <= inner < radius, got inner={inner}, "
+                         f"radius={radius}")
+    return cand
+
+
 def frontier_probe(chain: Chain, cand_xy, radius: float, inner: float = 0.0) -> jax.Array:
     """(K, M) bool: candidate m (``cand_xy`` (M, 2)) is uncovered free space within ``radius`` of
     mature row k's positive states inside k's pessimistic region, and no nearer than ``inner`` to
     any of them (False for other rows)."""
-    cand = jnp.asarray(cand_xy, jnp.float32)
-    if cand.ndim != 2 or cand.shape[-1] != 2:
-        raise ValueError(f"frontier_probe: cand_xy must have shape (M, 2), got {cand.shape}")
-    if not float(radius) > 0 or not 0 <= float(inner) < float(radius):
-        raise ValueError(f"frontier_probe: need 0 <= inner < radius, got inner={inner}, "
-                         f"radius={radius}")
+    cand = _checked_candidates("frontier_probe", cand_xy, radius, inner)
     mature = chain.status == MATURE
     ini = jax.vmap(lambda p: classify_all(chain, p)[0])(cand)            # (M, K)
     uncovered = ~jnp.any(ini & mature[None, :], axis=1)                     # (M,)
@@ -88,12 +94,7 @@ def goal_pool(chain: Chain, cand_xy, radius: float, inner: float = 0.0) -> jax.A
     within ``radius`` of the task goal and no nearer than ``inner`` to it (all False otherwise):
     the goal option's frontier starts (``Config.frontier.goal_starts``). Before the goal option
     matures no row has examples inside a pessimistic region, so :func:`start_pool` is empty."""
-    cand = jnp.asarray(cand_xy, jnp.float32)
-    if cand.ndim != 2 or cand.shape[-1] != 2:
-        raise ValueError(f"goal_pool: cand_xy must have shape (M, 2), got {cand.shape}")
-    if not float(radius) > 0 or not 0 <= float(inner) < float(radius):
-        raise ValueError(f"goal_pool: need 0 <= inner < radius, got inner={inner}, "
-                         f"radius={radius}")
+    cand = _checked_candidates("goal_pool", cand_xy, radius, inner)
     d2 = jnp.sum((cand - chain.goal_xy[None, :]) ** 2, axis=-1)
     near = (d2 <= float(radius) ** 2) & (d2 >= float(inner) ** 2)
     return near & (chain.status[GOAL] == GESTATION)
