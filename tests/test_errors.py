@@ -113,7 +113,7 @@ def test_missing_and_foreign_run_directories_get_one_line_errors(tmp_path, capsy
     assert "no checkpoint" in line and "check the disk" not in line
     # a seed of a committed seed group (results keep no checkpoints): says so, not "the disk"
     lean = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "experiments",
-                        "results", "paper_point_twins", "runs", "point_four_rooms-dsc-g0-4")
+                        "results", "paper", "runs", "u_maze-dsc-g0-4")
     shutil.copytree(lean, tmp_path / "lean")
     assert main(["eval", "--run", str(tmp_path / "lean" / "s0"), "--episodes", "1"]) == 2
     line = _one_error_line(capsys.readouterr().err)
@@ -187,7 +187,7 @@ def test_plot_of_a_results_group_draws_its_seeds_curves(tmp_path, capsys):
     # a committed seed group (no checkpoints): the group directory stands for its seeds, their
     # curves are drawn, and each seed says in one line why there is nothing more
     lean = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "experiments",
-                        "results", "paper_point_twins", "runs", "point_four_rooms-dsc-g0-4")
+                        "results", "paper", "runs", "u_maze-dsc-g0-4")
     group = str(tmp_path / "group")
     shutil.copytree(lean, group)
     out = str(tmp_path / "plots")
