@@ -155,15 +155,23 @@ def update_option_policies(config: Config, td3, replay: Replay, key, seed_axis=N
     steps on minibatches of its own transitions (`td3.td3_updates_options`, at most
     `config.td3_updates` steps in all), and the global option's (row 0) `config.td3_updates`
     steps on minibatches of every transition (`option_sample_fns`): about twice the shared TD3's
-    work. Returns (td3, ``td3/*`` metrics of the options' steps, ``td3/global_*`` of the global
-    option's)."""
+    work. When `config.td3_updates` is a whole number of `td3.sample_block` blocks the global
+    option's blocks run beside the options' in one pass (`td3_updates_options` with
+    ``global_row``: the same steps as one after the other). Returns (td3, ``td3/*`` metrics of
+    the options' steps, ``td3/global_*`` of the global option's)."""
     tcfg = TD3Config.from_section(config.td3, config.model_based)
     block = config.td3.sample_block
     own, everything = option_sample_fns(config, replay)
     k_own, k_glob = jax.random.split(key)
     rounds = -(-config.td3_updates // block)
-    td3, om = td3_updates_options(tcfg, td3, option_steps(config, replay), k_own, rounds, own,
-                                  sample_block=block, seed_axis=seed_axis)
+    steps = option_steps(config, replay)
+    if config.td3_updates % block == 0:
+        td3, m = td3_updates_options(tcfg, td3, steps, k_own, rounds, own, sample_block=block,
+                                     seed_axis=seed_axis, global_row=GLOBAL_ROW,
+                                     global_key=k_glob, global_sample_fn=everything)
+        return td3, {f"td3/{k}": v for k, v in m.items()}
+    td3, om = td3_updates_options(tcfg, td3, steps, k_own, rounds, own, sample_block=block,
+                                  seed_axis=seed_axis)
     glob, gm = td3_updates(tcfg, td3_option(td3, GLOBAL_ROW), None, k_glob, config.td3_updates,
                            lambda k, _, n: everything(k, n), sample_block=block,
                            seed_axis=seed_axis)

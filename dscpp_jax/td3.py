@@ -598,6 +598,9 @@ def td3_updates_options(
     sample_fn: Callable[[jax.Array, jax.Array, int], Transition],
     sample_block: int = 1,
     seed_axis: Optional[str] = None,
+    global_row: Optional[int] = None,
+    global_key: Optional[jax.Array] = None,
+    global_sample_fn: Optional[Callable[[jax.Array, int], Transition]] = None,
 ) -> Tuple[TD3State, Dict[str, jax.Array]]:
     """Per-option TD3s (:func:`td3_init_per_option`) where option ``k`` takes about ``steps[k]``
     ((K,) int, traced) gradient steps, each on a minibatch ``sample_fn(key, k, n)`` of its own
@@ -609,6 +612,15 @@ def td3_updates_options(
     does not run is skipped by a ``lax.cond`` (under a seed vmap, ``seed_axis``: when no run of
     the group runs it), so the cost follows the steps taken, not ``num_rounds``.
 
+    With ``global_row`` (static), ``global_key`` and ``global_sample_fn(key, n)``, the option in
+    that row (which then takes no option steps) also takes ``num_rounds * sample_block`` steps on
+    minibatches of ``global_sample_fn``: the same steps, minibatches and keys as
+    :func:`td3_updates` (``td3_updates(cfg, td3_option(state, global_row), None, global_key,
+    num_rounds * sample_block, lambda k, _, n: global_sample_fn(k, n), sample_block)``) after
+    this call without them, but each of its blocks runs beside that round's option block in one
+    ``vmap`` over the pair, so the two learners take one sequence of small steps instead of two.
+    Its metrics come back prefixed ``global_``, as :func:`td3_updates` names them.
+
     Metrics: means over the steps taken (0 when none); ``actor_updates`` and ``option_steps``
     count the actor and critic steps; ``options_learning`` the options that took any."""
     num_rounds, block = int(num_rounds), int(sample_block)
@@ -616,19 +628,28 @@ def td3_updates_options(
         raise ValueError(f"td3_updates_options: num_rounds must be >= 1, got {num_rounds}")
     if block < 1:
         raise ValueError(f"td3_updates_options: sample_block must be >= 1, got {block}")
+    with_global = global_row is not None
+    if with_global and (global_key is None or global_sample_fn is None):
+        raise ValueError("td3_updates_options: global_row needs global_key and global_sample_fn")
     K = jax.tree_util.tree_leaves(state)[0].shape[0]
     n = cfg.batch_size
+    if with_global:
+        steps = jnp.asarray(steps, jnp.int32).at[int(global_row)].set(0)
     option, runs = option_rounds(steps, block, num_rounds)
     zero = {k: jnp.zeros((block,), jnp.float32) for k in
             ("critic_loss", "actor_loss", "actor_updated", "q_mean", "target_mean",
              "reward_mean")}
+    identity = lambda bk: bk   # noqa: E731  (xs already hold each step's (minibatch, key))
 
-    def work(st_all, kk, k):
+    def own_inputs(kk, k):
         k_s, k_u = jax.random.split(kk)
         batches = jax.tree_util.tree_map(lambda x: x.reshape((block, n) + x.shape[1:]),
                                          sample_fn(k_s, k, block * n))
-        st, ms = _scan_updates(cfg, td3_option(st_all, k), (batches, jax.random.split(k_u, block)),
-                               lambda bk: bk, seed_axis)
+        return batches, jax.random.split(k_u, block)
+
+    def work(st_all, kk, k):
+        st, ms = _scan_updates(cfg, td3_option(st_all, k), own_inputs(kk, k), identity,
+                               seed_axis)
         return st, {name: ms[name].astype(jnp.float32) for name in zero}
 
     def round_(st_all, x):
@@ -647,7 +668,71 @@ def td3_updates_options(
                 lambda v: jnp.where(on, v, 0.0), ms)
         return jax.lax.cond(any_on, some, lambda s: (s, zero), st_all)
 
-    state, ms = jax.lax.scan(round_, state, (jax.random.split(key, num_rounds), option, runs))
+    if not with_global:
+        state, ms = jax.lax.scan(round_, state, (jax.random.split(key, num_rounds), option,
+                                                 runs))
+        return state, _options_metrics(ms, option, runs, K, block)
+
+    # the global option's blocks: td3_updates' keys and minibatches for num_rounds * block steps
+    gsteps = num_rounds * block
+    placed = gsteps % cfg.policy_delay == 0
+    if block == 1:
+        gkeys = jax.random.split(global_key, num_rounds)
+
+        def global_inputs(kg):
+            ks, ku = jax.random.split(kg)
+            return jax.tree_util.tree_map(lambda x: x[None], global_sample_fn(ks, n)), ku[None]
+    else:
+        gkeys = jax.random.split(jax.random.split(global_key)[0], num_rounds)
+
+        def global_inputs(kg):
+            ks, ku = jax.random.split(kg)
+            batches = jax.tree_util.tree_map(lambda x: x.reshape((block, n) + x.shape[1:]),
+                                             global_sample_fn(ks, block * n))
+            return batches, jax.random.split(ku, block)
+
+    def global_alone(carry, kg):
+        st_all, st_g = carry
+        st_g, mg = _scan_updates(cfg, st_g, global_inputs(kg), identity, seed_axis, placed)
+        return (st_all, st_g), (zero, mg)
+
+    def pair(carry, kk, kg, k, on):
+        st_all, st_g = carry
+        st_o = td3_option(st_all, k)
+        both = jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b]), st_o, st_g)
+        xs = jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b]), own_inputs(kk, k),
+                                    global_inputs(kg))
+        both, ms = jax.vmap(lambda s, x: _scan_updates(cfg, s, x, identity, seed_axis, placed)
+                            )(both, xs)
+        new_o = jax.tree_util.tree_map(lambda a: a[0], both)
+        st_g = jax.tree_util.tree_map(lambda a: a[1], both)
+        mo = {name: ms[name][0].astype(jnp.float32) for name in zero}
+        mg = jax.tree_util.tree_map(lambda a: a[1], ms)
+        if seed_axis is not None:
+            new_o = jax.tree_util.tree_map(lambda a, b: jnp.where(on, a, b), new_o, st_o)
+            mo = jax.tree_util.tree_map(lambda v: jnp.where(on, v, 0.0), mo)
+        return (td3_set_option(st_all, k, new_o), st_g), (mo, mg)
+
+    def round_pair(carry, x):
+        kk, kg, k, on = x
+        pred = on if seed_axis is None else jax.lax.psum(on.astype(jnp.int32), seed_axis) > 0
+        return jax.lax.cond(pred, lambda c: pair(c, kk, kg, k, on),
+                            lambda c: global_alone(c, kg), carry)
+
+    g = int(global_row)
+    (state, st_g), (ms, mg) = jax.lax.scan(
+        round_pair, (state, td3_option(state, g)),
+        (jax.random.split(key, num_rounds), gkeys, option, runs))
+    state = td3_set_option(state, g, st_g)
+    metrics = _options_metrics(ms, option, runs, K, block)
+    gm = _summarise(jax.tree_util.tree_map(lambda a: a.reshape((gsteps,) + a.shape[2:]), mg))
+    metrics.update({f"global_{k}": v for k, v in gm.items()})
+    return state, metrics
+
+
+def _options_metrics(ms, option, runs, K: int, block: int) -> Dict[str, jax.Array]:
+    """:func:`td3_updates_options`' metrics from its rounds' per-step metrics ((R, block))."""
+    num_rounds = option.shape[0]
     w = jnp.broadcast_to(runs[:, None], (num_rounds, block)).astype(jnp.float32)
     n_steps = jnp.sum(w)
     n_actor = jnp.sum(ms["actor_updated"] * w)
@@ -658,4 +743,4 @@ def td3_updates_options(
     metrics["option_steps"] = n_steps
     took = jnp.bincount(jnp.where(runs, option, K), length=K + 1)[:K] > 0
     metrics["options_learning"] = jnp.sum(took.astype(jnp.float32))
-    return state, metrics
+    return metrics

@@ -16,8 +16,8 @@ from dscpp_jax import learning as L
 from dscpp_jax import trainer as T
 from dscpp_jax.options import FREE, GESTATION, MATURE
 from dscpp_jax.replay import RegionStep, replay_add, replay_group_index, replay_init
-from dscpp_jax.td3 import (td3_copy_option, td3_init_per_option, td3_option, td3_target_noise,
-                           td3_updates_options)
+from dscpp_jax.td3 import (td3_copy_option, td3_init_per_option, td3_option, td3_set_option,
+                           td3_target_noise, td3_updates, td3_updates_options)
 from dscpp_jax.td3 import TD3Config
 from tests.numpy_nets import np_mlp, to_np
 from tests.trainer_fixtures import tiny
@@ -218,3 +218,64 @@ def test_region_options_succeed_anywhere_in_their_target_and_the_global_option_s
     ended, success = jax.jit(lambda e, p: A.option_end(cfg, env, chain, e, p, jnp.zeros(3)))(ex, xy)
     np.testing.assert_array_equal(np.asarray(ended), [True, True, False])
     np.testing.assert_array_equal(np.asarray(success), [False, True, False])
+
+
+def _sequential_option_updates(cfg, td3, replay, key, seed_axis=None):
+    """The options' steps and then the global option's, one after the other: the reference
+    for the pass that runs them side by side."""
+    tcfg = TD3Config.from_section(cfg.td3, cfg.model_based)
+    own, everything = L.option_sample_fns(cfg, replay)
+    k_own, k_glob = jax.random.split(key)
+    block = cfg.td3.sample_block
+    td3, om = td3_updates_options(tcfg, td3, L.option_steps(cfg, replay), k_own,
+                                  -(-cfg.td3_updates // block), own, sample_block=block,
+                                  seed_axis=seed_axis)
+    glob, gm = td3_updates(tcfg, td3_option(td3, L.GLOBAL_ROW), None, k_glob, cfg.td3_updates,
+                           lambda k, _, n: everything(k, n), sample_block=block,
+                           seed_axis=seed_axis)
+    td3 = td3_set_option(td3, L.GLOBAL_ROW, glob)
+    m = {f"td3/{k}": v for k, v in om.items()}
+    m.update({f"td3/global_{k}": v for k, v in gm.items()})
+    return td3, m
+
+
+@pytest.mark.parametrize("algo,kw,grouped", [
+    ("dsc", dict(td3_sample_block=4), True),
+    ("mf_dscpp", dict(shared_critic=False, td3_sample_block=1), False)])
+def test_the_global_option_learning_beside_the_options_takes_the_same_steps(algo, kw, grouped):
+    cfg = _config(algo, **kw)
+    assert cfg.td3_updates % cfg.td3.sample_block == 0     # the side-by-side pass
+    goal_dim = 0 if cfg.option_policies == "region" else 2
+    tcfg = TD3Config.from_section(cfg.td3, cfg.model_based)
+    states = jax.jit(lambda k: td3_init_per_option(k, K, OBS, goal_dim, ACT, tcfg))(
+        jax.random.key(0))
+    buf, _, _ = _replay(3)
+
+    def close(a, b):
+        for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
+            np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-5, atol=1e-6)
+
+    fused = jax.jit(lambda s, r, k: L.update_option_policies(cfg, s, r, k))
+    one_after = jax.jit(lambda s, r, k: _sequential_option_updates(cfg, s, r, k))
+    for step in range(2):       # a second call starts from trained states and step counts
+        key = jax.random.key(11 + step)
+        new, m = fused(states, buf, key)
+        ref, mr = one_after(states, buf, key)
+        assert sorted(m) == sorted(mr)
+        close(new, ref)
+        close(m, {k: mr[k] for k in m})
+        states = new
+    assert int(td3_option(states, L.GLOBAL_ROW).step) == 2 * cfg.td3_updates
+    assert float(m["td3/option_steps"]) > 0
+    if not grouped:
+        return
+    # under a vmap over seeds (the seed group), where a round runs when any seed runs it
+    bufs = jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b]), buf, _replay(4)[0])
+    st2 = jax.tree_util.tree_map(lambda a: jnp.stack([a, a]), states)
+    keys = jax.random.split(jax.random.key(21), 2)
+    group = lambda f: jax.jit(jax.vmap(lambda s, r, k: f(cfg, s, r, k, seed_axis="seed"),  # noqa: E731
+                                       axis_name="seed"))
+    new, m = group(L.update_option_policies)(st2, bufs, keys)
+    ref, mr = group(_sequential_option_updates)(st2, bufs, keys)
+    close(new, ref)
+    close(m, {k: mr[k] for k in m})
