@@ -22,6 +22,10 @@ already writes (``docs/cli.md``, "diagnose"; the medium maze in ``experiments/re
 - ``unfinished``: the run has no ``eval.json`` yet (stopped or still training before its final
   evaluation); its row shows what ``metrics.csv`` holds (episodes, in-band success, coverage) and
   the means leave it out of the final success;
+- ``decayed`` (before any of the above): the in-band evaluation reached ``SOLVED`` at some point
+  of training (column "best in-band") and neither its last window nor the final evaluation
+  is there any more: a chain that worked stopped working well before the end (when only the
+  final evaluation fell, the verdict is ``broke late``);
 - ``broke late`` (before any of the above): the in-band evaluation's last window
   (``inband/success_rate``, episodes that began in about the last 20-40 iterations) was at or
   above ``SOLVED`` and the final evaluation is below it by more than ``LATE_DROP`` (over three
@@ -62,8 +66,8 @@ LATE_DROP = 0.2           # broke late: the final evaluation this far below the 
 FALLS_SHARE = 0.5         # falls: at least this share of the failed evaluation episodes
 DIP = 0.5                 # a periodic evaluation below this, after one reached SOLVED, is a dip
 
-COLUMNS = ("run", "success", "in-band at the end", "dips once solved", "start covered",
-           "coverage lost", "options", "falls", "weak links", "verdict")
+COLUMNS = ("run", "success", "in-band at the end", "best in-band", "dips once solved",
+           "start covered", "coverage lost", "options", "falls", "weak links", "verdict")
 
 
 def _start_distances(metrics: dict) -> str:
@@ -106,6 +110,18 @@ def dips(path: str) -> Optional[tuple]:
         return (0, 0)
     after = vals[first:]
     return (sum(v < DIP for v in after), len(after))
+
+
+def best_inband(path: str) -> float:
+    """The highest in-band success (``inband/success_rate``) of a ``metrics.csv``'s rows; NaN
+    when it logs none."""
+    best = math.nan
+    with open(path, newline="") as f:
+        for row in csv.DictReader(f):
+            v = _num(row, "inband/success_rate")
+            if math.isfinite(v) and not v <= best:
+                best = v
+    return best
 
 
 def coverage_lost(path: str) -> Optional[tuple]:
@@ -196,10 +212,14 @@ def diagnose_run(run_dir: str) -> dict:
                    f"{_start_distances(last)})")
     else:
         verdict = "not covered"
+    best = best_inband(paths["metrics.csv"])
     if (success < SOLVED and math.isfinite(inband) and inband >= SOLVED
             and success < inband - LATE_DROP):
         verdict = f"broke late ({verdict})"
-    return {"run": run_dir, "success": success, "inband": inband,
+    elif (finished and success < SOLVED and math.isfinite(best) and best >= SOLVED
+          and math.isfinite(inband) and inband < SOLVED):
+        verdict = f"decayed ({verdict})"
+    return {"run": run_dir, "success": success, "inband": inband, "best_inband": best,
             "dips": dips(paths["metrics.csv"]), "start_covered": covered,
             "coverage_lost": coverage_lost(paths["metrics.csv"]),
             "options": int(_num(last, "options/num_options", 0.0)), "table_full": full,
@@ -238,6 +258,7 @@ def format_table(rows: Sequence[dict], root: Optional[str] = None) -> str:
                  f"{int(r['falls'])} of {int(r['failures'])}" if math.isfinite(r["failures"])
                  else f"{int(r['falls'])}")
         inband = r.get("inband", math.nan)
+        best = r.get("best_inband", math.nan)
         dip = r.get("dips")
         success = f"{r['success']:.2f}" if math.isfinite(r["success"]) else "-"
         lost = r.get("coverage_lost")
@@ -247,6 +268,7 @@ def format_table(rows: Sequence[dict], root: Optional[str] = None) -> str:
             n, links = lost
             lost = f"{n}" + (f" (+{links} link{'' if links == 1 else 's'})" if links else "")
         cells = [run, success, f"{inband:.2f}" if math.isfinite(inband) else "-",
+                 f"{best:.2f}" if math.isfinite(best) else "-",
                  "-" if not dip or not dip[1] else f"{dip[0]} of {dip[1]}",
                  "yes" if r["start_covered"] else "no", lost,
                  f"{r['options']}" + (" (full)" if r["table_full"] else ""), falls,
@@ -257,7 +279,7 @@ def format_table(rows: Sequence[dict], root: Optional[str] = None) -> str:
 
 def verdict_kind(verdict: str) -> str:
     """The verdict without its details: "weak links 3, 7" -> "weak link", "broke late (falls)"
-    -> "broke late", "stalled link (targets option 15, ...)" -> "stalled link", "falls; weak
+    -> "broke late", "decayed (weak link 4)" -> "decayed", "stalled link (targets option 15, ...)" -> "stalled link", "falls; weak
     link 7" -> "falls and weak link"."""
     parts = [p.strip() for p in verdict.split(" (", 1)[0].split(";")]
     return " and ".join("weak link" if p.startswith("weak link") else p for p in parts)

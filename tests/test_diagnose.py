@@ -92,9 +92,10 @@ def test_each_failure_gets_its_verdict(tmp_path):
     assert D.diagnose_run(str(tmp_path / "weak"))["weak_links"] == [7]   # not the global option
     table = D.format_table([D.diagnose_run(str(tmp_path / n)) for n in cases], str(tmp_path))
     # the first row had the start covered, the last not: one loss, no link since
-    assert "| full | 0.00 | - | - | no | 1 | 24 (full) | 0 of 100 | - | table full |" in table
-    assert "| falls | 0.60 | - | - | yes | 0 | 10 | 30 of 40 | - | falls |" in table
-    assert "| late | 0.00 | 0.97 | - | yes | 0 | 10 | 0 of 100 | 23 | broke late (weak link 23) |" in table
+    assert "| full | 0.00 | - | - | - | no | 1 | 24 (full) | 0 of 100 | - | table full |" in table
+    assert "| falls | 0.60 | - | - | - | yes | 0 | 10 | 30 of 40 | - | falls |" in table
+    assert ("| late | 0.00 | 0.97 | 0.97 | - | yes | 0 | 10 | 0 of 100 | 23 | "
+            "broke late (weak link 23) |") in table
     # the summary counts kinds, details left out: "weak link 7" and "weak link 23" are one kind
     assert D.verdict_kind("stalled link (targets option 15, 1200 executions)") == "stalled link"
     assert D.verdict_kind("falls; weak links 3, 4") == "falls and weak link"
@@ -114,6 +115,32 @@ def test_each_failure_gets_its_verdict(tmp_path):
     assert D.format_means([]) == "success from the start -, in-band at the end -"
 
 
+def test_a_chain_that_reached_solved_in_band_and_lost_it_decayed(tmp_path):
+    """The in-band window once at 0.8 or more, at the end and in the final evaluation below:
+    "decayed"; a peak below 0.8, or a last window still there (broke late), is not."""
+    def run(name, inband, success):
+        d = tmp_path / name
+        d.mkdir()
+        with open(d / "metrics.csv", "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=["iteration", "options/start_covered",
+                                              "options/num_options", "inband/success_rate"])
+            w.writeheader()
+            for i, v in enumerate(inband):
+                w.writerow({"iteration": i, "options/start_covered": 1,
+                            "options/num_options": 16, "inband/success_rate": v})
+        with open(d / "eval.json", "w") as f:
+            json.dump({"eval/success_rate": success, "eval/flipped_failures": 0.0,
+                       "eval/option_success/12": 0.1}, f)
+        return D.diagnose_run(str(d))
+    r = run("decayed", ["", 0.3, 0.91, 0.66, 0.12], 0.07)
+    assert r["verdict"] == "decayed (weak link 12)" and r["best_inband"] == 0.91
+    assert D.verdict_kind(r["verdict"]) == "decayed"
+    assert "| 0.07 | 0.12 | 0.91 | - | yes |" in D.format_table([r])
+    assert run("never", [0.3, 0.5, 0.1], 0.01)["verdict"] == "weak link 12"
+    assert run("late", [0.3, 0.91, 0.9], 0.05)["verdict"] == "broke late (weak link 12)"
+    assert run("solved", [0.91, 0.5], 0.85)["verdict"] == "solved"
+
+
 def test_coverage_lost_counts_the_start_leaving_the_chain_after_it_was_first_covered(tmp_path):
     """Losses count 1 -> 0 changes from the first covered row on (rows before it and rows
     without the column do not count); links are the options made from that row to the last."""
@@ -129,7 +156,7 @@ def test_coverage_lost_counts_the_start_leaving_the_chain_after_it_was_first_cov
     assert D.coverage_lost(f"{d}/metrics.csv") == (3, 3)
     r = D.diagnose_run(d)
     assert r["coverage_lost"] == (3, 3)
-    assert "| flapping | 0.00 | - | - | yes | 3 (+3 links) | 12 |" in D.format_table([r], str(tmp_path))
+    assert "| flapping | 0.00 | - | - | - | yes | 3 (+3 links) | 12 |" in D.format_table([r], str(tmp_path))
     with open(f"{d}/metrics.csv", "w") as f:
         f.write("iteration,options/start_covered,options/num_options\n1,0,2\n2,1,5\n3,1,6\n")
     assert D.coverage_lost(f"{d}/metrics.csv") == (0, 1)
@@ -150,12 +177,12 @@ def test_dips_count_periodic_evaluations_below_half_once_solved(tmp_path):
     assert D.dips(f"{d}/metrics.csv") == (3, 7)   # 0.0, 0.28, 0.41 of the seven from 0.86 on
     r = D.diagnose_run(d)
     assert r["dips"] == (3, 7) and r["verdict"] == "solved"
-    assert "| dipping | 0.90 | - | 3 of 7 | yes | 0 |" in D.format_table([r], str(tmp_path))
+    assert "| dipping | 0.90 | - | - | 3 of 7 | yes | 0 |" in D.format_table([r], str(tmp_path))
     never = _run(tmp_path, "never", {}, {"eval/success_rate": 0.0})
     with open(f"{never}/metrics.csv", "w") as f:
         f.write("iteration,eval/success_rate,options/start_covered\n1,0.0,0\n2,0.5,0\n")
     assert D.dips(f"{never}/metrics.csv") == (0, 0)
-    assert "| never | 0.00 | - | - | no | - |" in D.format_table([D.diagnose_run(never)], str(tmp_path))
+    assert "| never | 0.00 | - | - | - | no | - |" in D.format_table([D.diagnose_run(never)], str(tmp_path))
 
 
 def test_diagnose_takes_groups_and_says_what_is_missing(tmp_path, capsys):
@@ -167,7 +194,7 @@ def test_diagnose_takes_groups_and_says_what_is_missing(tmp_path, capsys):
     r = D.diagnose_run(a)
     assert r["verdict"] == "unfinished (0 episodes, start covered, no final evaluation)"
     assert math.isnan(r["success"]) and D.verdict_kind(r["verdict"]) == "unfinished"
-    assert "| a | - | - | - | yes | 0 |" in D.format_table([r], str(tmp_path))
+    assert "| a | - | - | - | - | yes | 0 |" in D.format_table([r], str(tmp_path))
     done = _run(tmp_path, "done", {"options/start_covered": 1}, {"eval/success_rate": 0.5})
     assert D.format_summary([r, D.diagnose_run(done)]) == "2 runs: 1 start covered, failing on the way; 1 unfinished"
     assert D.format_means([r, D.diagnose_run(done)]).startswith(
