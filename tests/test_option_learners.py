@@ -279,3 +279,15 @@ def test_the_global_option_learning_beside_the_options_takes_the_same_steps(algo
     ref, mr = group(_sequential_option_updates)(st2, bufs, keys)
     close(new, ref)
     close(m, {k: mr[k] for k in m})
+
+
+@pytest.mark.parametrize("env", ["u_maze", "medium", "four_rooms", "ant_reacher"])
+@pytest.mark.parametrize("algo,kw", [("dsc", {}), ("dual", {}),
+                                     ("mf_dscpp", dict(shared_critic=False))])
+def test_the_ant_presets_take_the_side_by_side_pass(env, algo, kw):
+    """The ant presets' per-option learners take whole sample blocks per iteration, so the
+    global option's steps run beside the options' (`update_option_policies`)."""
+    from dscpp_jax.config import preset
+    cfg = preset("fast", env, algo, **kw)
+    assert cfg.per_option_td3 and cfg.td3.sample_block > 1
+    assert cfg.td3_updates % cfg.td3.sample_block == 0
