@@ -34,12 +34,20 @@ from concurrent.futures import ThreadPoolExecutor, as_completed
 
 FAST_XLA = "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true"
 FULL_XLA = {"test_learning.py", "test_svm.py"}
-# Longest first, so that the last file to start is a short one (seconds on the 2-core CI machine).
-LONGEST_FIRST = ["test_learning.py", "test_reproduce.py", "test_inband.py", "test_trainer.py",
-                 "test_run_dir.py", "test_seed_group.py", "test_envs_ant.py", "test_td3.py",
-                 "test_mpc.py", "test_profile_train_step.py", "test_redesign_parity.py",
-                 "test_cli.py", "test_option_critics.py", "test_frontier.py", "test_svm.py",
-                 "test_option_learners.py", "test_prewarm.py"]
+# Longest first (CPU time), every file, so that the last files to start are short ones (seconds
+# on the 2-core CI machine) and the two workers finish together; a file not listed starts last.
+LONGEST_FIRST = ["test_learning.py", "test_reproduce.py", "test_run_dir.py", "test_trainer.py",
+                 "test_seed_group.py", "test_inband.py", "test_envs_ant.py", "test_td3.py",
+                 "test_redesign_parity.py", "test_option_critics.py", "test_cli.py",
+                 "test_svm.py", "test_mpc.py", "test_frontier_goal.py", "test_prewarm.py",
+                 "test_profile_train_step.py", "test_frontier.py", "test_checkpoint.py",
+                 "test_option_learners.py", "test_dynamics.py", "test_options.py",
+                 "test_replay_her.py", "test_errors.py", "test_initiation.py",
+                 "test_envs_layout.py", "test_subgoals.py", "test_video.py",
+                 "test_time_to_threshold.py", "test_compare.py", "test_bench_replay_draws.py",
+                 "test_warp_kernels.py", "test_startup_clock.py", "test_config.py",
+                 "test_diagnose.py", "test_runtime.py", "test_probe_matmul_precision.py",
+                 "test_repo_layout.py"]
 
 
 def _order(files: list[pathlib.Path]) -> list[pathlib.Path]:
