@@ -534,11 +534,15 @@ def test_a_damaged_newest_checkpoint(single, tmp_path, xla_cache):
 # A seed group too large for memory
 # ------------------------------------------------------------------------------------------------
 def test_a_seed_group_too_large_for_memory_is_refused_before_anything_is_written(tmp_path,
-                                                                                  xla_cache):
+                                                                                  monkeypatch,
+                                                                                  capsys):
+    """Through the command line (`main`, as `python -m dscpp_jax.cli` calls it): the refusal
+    comes before anything is compiled, so a process of its own would only add its start-up."""
+    from dscpp_jax.cli import main
+    monkeypatch.chdir(tmp_path)   # where the default runs/ directory would go
     # capacities large enough that no host holds 5001 seeds (about 1 TiB)
-    rc, out, err, _ = _cli(["train", "--env", "point_u_maze", "--seeds", "0-5000", "--no-progress",
-                            "--set", "replay_capacity=2000000", "--set", "model_capacity=2000000"],
-                           xla_cache, cwd=str(tmp_path))
-    assert rc == 2, err[-3000:]
-    _assert_one_line_error_last(err, "5001 seeds does not fit", "at most", "Nothing was written")
+    assert main(["train", "--env", "point_u_maze", "--seeds", "0-5000", "--no-progress",
+                 "--set", "replay_capacity=2000000", "--set", "model_capacity=2000000"]) == 2
+    _assert_one_line_error_last(capsys.readouterr().err, "5001 seeds does not fit", "at most",
+                                "Nothing was written")
     assert os.listdir(tmp_path) == []   # no runs/ directory, no seed directories
