@@ -32,7 +32,7 @@ from dscpp_jax.config import Config
 from dscpp_jax.dynamics import DynamicsConfig
 from dscpp_jax.mpc import MPCConfig, mpc_actions as _mpc_shooting, td3_value_net
 from dscpp_jax.options import chain_metrics as _chain_metrics, option_terminates, record_outcomes \
-    as _record_outcomes, select_option
+    as _record_outcomes, select_option, table_columns, TABLE_PREFIX
 from dscpp_jax.td3 import TD3Config, td3_act, td3_explore, td3_option, td3_perturb, \
     td3_random_prob, td3_value
 from dscpp_jax.envs.goal_env import select_states
@@ -299,6 +299,12 @@ def chain_metrics(config: Config, chain, start_xy=None) -> Dict[str, jax.Array]:
     eq. 3)."""
     m = _chain_metrics(chain, None if start_xy is None else jnp.asarray(start_xy, jnp.float32))
     return {f"options/{k}": jnp.asarray(v, jnp.float32) for k, v in m.items()}
+
+
+def option_table(chain) -> Dict[str, jax.Array]:
+    """`table/*`: the option table's (K,) columns (`options.table_columns`), which the host
+    writes to the run's options.csv instead of metrics.csv."""
+    return {TABLE_PREFIX + k: jnp.asarray(v, jnp.int32) for k, v in table_columns(chain).items()}
 
 
 # ------------------------------------------------------------------------------------------------

@@ -45,6 +45,13 @@ made from that first iteration on ("3 (+7 links)"). The chain grows whenever the
 covered, so each loss can add a link at the start. Losses alone are no verdict: chains that
 succeed lose the start too.
 
+Column "fading links": from ``options.csv`` (the option table every few iterations), the mature
+links whose training executions succeed much less often at the end than they once did: each
+link's executions since it matured are cut into spans of at least ``FADE_SPAN`` executions, and
+a link fades when its best span's success rate was at least ``FADE_BEST`` and its last span's
+is lower by ``FADE_DROP`` or more ("7 (0.85 to 0.21)"). A chain that decays names the links it
+lost there. Runs from before ``options.csv`` show "-".
+
 Only the lean files are read (no checkpoint), so it works on results copied off a GPU host.
 ``python -m dscpp_jax.cli diagnose RUN_OR_GROUP_DIR ...`` prints one row per seed.
 """
@@ -65,9 +72,13 @@ WEAK_LINK = 0.2           # an option that succeeds in fewer of its evaluation e
 LATE_DROP = 0.2           # broke late: the final evaluation this far below the in-band window
 FALLS_SHARE = 0.5         # falls: at least this share of the failed evaluation episodes
 DIP = 0.5                 # a periodic evaluation below this, after one reached SOLVED, is a dip
+FADE_SPAN = 40            # fading links: executions per span of a link's success rate
+FADE_BEST = 0.5           # ... whose best span succeeded at least this often
+FADE_DROP = 0.3           # ... and whose last span succeeds this much less often
 
 COLUMNS = ("run", "success", "in-band at the end", "best in-band", "dips once solved",
-           "start covered", "coverage lost", "options", "falls", "weak links", "verdict")
+           "start covered", "coverage lost", "options", "falls", "weak links", "fading links",
+           "verdict")
 
 
 def _start_distances(metrics: dict) -> str:
@@ -141,6 +152,49 @@ def coverage_lost(path: str) -> Optional[tuple]:
         return None
     losses = sum(1 for a, b in zip(covered[first:], covered[first + 1:]) if a and not b)
     return losses, int(options[-1] - options[first])
+
+
+def link_spans(path: str) -> dict:
+    """{option: [(first iteration, last iteration, executions, success rate), ...]} of an
+    ``options.csv``: each mature link's executions from the snapshot where it was first mature
+    on, cut into consecutive spans of at least ``FADE_SPAN`` executions (a last, shorter
+    remainder is dropped). A row's counters restarting (the row freed and reused by another
+    link) start its spans over."""
+    snaps: dict = collections.defaultdict(list)
+    with open(path, newline="") as f:
+        for row in csv.DictReader(f):
+            if row.get("status") != "mature" or row.get("option") in (None, "0"):
+                continue   # the chain's links: the goal option and its descendants
+            snaps[int(row["option"])].append((int(row["iteration"]), int(row["executions"]),
+                                              int(row["successes"])))
+    out = {}
+    for k, s in snaps.items():
+        spans, (it0, e0, s0) = [], s[0]
+        for it, e, n in s[1:]:
+            if e < e0:           # a new link in this row
+                spans, (it0, e0, s0) = [], (it, e, n)
+                continue
+            if e - e0 >= FADE_SPAN:
+                spans.append((it0, it, e - e0, (n - s0) / (e - e0)))
+                it0, e0, s0 = it, e, n
+        out[k] = spans
+    return out
+
+
+def fading_links(run_dir: str) -> Optional[list]:
+    """[(option, best span's success rate, last span's), ...] of a run's mature links that fade
+    (see the module docstring), most faded first; None when the run has no ``options.csv``."""
+    path = os.path.join(run_dir, "options.csv")
+    if not os.path.isfile(path):
+        return None
+    out = []
+    for k, spans in link_spans(path).items():
+        if len(spans) < 2:
+            continue
+        best, last = max(r for *_, r in spans), spans[-1][3]
+        if best >= FADE_BEST and last <= best - FADE_DROP:
+            out.append((k, best, last))
+    return sorted(out, key=lambda t: (t[2] - t[1], t[0]))
 
 
 def _num(d: dict, key: str, default: float = math.nan) -> float:
@@ -224,7 +278,7 @@ def diagnose_run(run_dir: str) -> dict:
             "coverage_lost": coverage_lost(paths["metrics.csv"]),
             "options": int(_num(last, "options/num_options", 0.0)), "table_full": full,
             "falls": falls, "failures": failures, "weak_links": weak, "stalled_link": stalled,
-            "verdict": verdict}
+            "fading_links": fading_links(run_dir), "verdict": verdict}
 
 
 def chain_verdict(cfg, run_dir: str) -> Optional[str]:
@@ -272,7 +326,10 @@ def format_table(rows: Sequence[dict], root: Optional[str] = None) -> str:
                  "-" if not dip or not dip[1] else f"{dip[0]} of {dip[1]}",
                  "yes" if r["start_covered"] else "no", lost,
                  f"{r['options']}" + (" (full)" if r["table_full"] else ""), falls,
-                 ", ".join(map(str, r["weak_links"])) or "-", r["verdict"]]
+                 ", ".join(map(str, r["weak_links"])) or "-",
+                 "-" if not r.get("fading_links") else
+                 ", ".join(f"{k} ({b:.2f} to {a:.2f})" for k, b, a in r["fading_links"]),
+                 r["verdict"]]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 

@@ -35,6 +35,7 @@ from dscpp_jax import runtime
 from dscpp_jax import trainer as T
 from dscpp_jax.config import MEDIUM_MODEL_FREE_TD3, MODEL_BASED_ALGOS, Config, preset
 from dscpp_jax.evaluate import evaluate
+from dscpp_jax.options import TABLE_PREFIX
 from dscpp_jax.run_dir import check_fresh, default_run_dir, lock_run_dir, previous_wall
 from dscpp_jax.run_logging import (STARTUP_FILE, RunDirError, RunLogger, StartupClock,
                                    load_config, os_error_fix, process_age_s, write_config)
@@ -462,7 +463,8 @@ def run_loop(cfgs: Sequence[Config], counters: tuple, hooks: LoopHooks, *, budge
                    "time/env_steps_per_s": rate}
             if group_rate:
                 row["time/group_env_steps_per_s"] = rate * int(active.sum())
-            row.update({k: float(v[i]) for k, v in m.items() if not k.startswith("counters/")})
+            row.update({k: (np.asarray(v[i]) if k.startswith(TABLE_PREFIX) else float(v[i]))
+                        for k, v in m.items() if not k.startswith("counters/")})
             rows[i] = row
             if due[i] and ev is None:
                 pending[i] = row
@@ -510,7 +512,7 @@ class RunProgress:
 
     def __call__(self, p: Progress) -> None:
         row = p.rows[0]
-        m = {k: float(v[0]) for k, v in p.metrics.items()}
+        m = {k: float(v[0]) for k, v in p.metrics.items() if not k.startswith(TABLE_PREFIX)}
         it, last_eval = row["iteration"], float(p.last_eval[0])
         if self.pbar is None and p.evaluated:
             print(f"[{row['wall_clock']:7.0f}s] it {it} env_steps {int(row['env_steps'])} "
@@ -623,7 +625,7 @@ def train(cfg: Optional[Config] = None, run_dir: Optional[str] = None, resume: b
     def step(active):
         box["prev"] = box["state"]
         box["state"], m = T.train_step(box["state"])
-        m = {k: np.array([float(v)]) for k, v in jax.device_get(m).items()}
+        m = {k: np.asarray(v)[None] for k, v in jax.device_get(m).items()}
         c = box["state"].counters
         return m, tuple(np.array([int(x)]) for x in (c.env_steps, c.episodes, c.iteration))
 

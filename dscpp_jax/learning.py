@@ -30,7 +30,7 @@ import jax.numpy as jnp
 
 from dscpp_jax import frontier
 from dscpp_jax.acting import FRONTIER_KEY_SALT, any_seed, chain_metrics, frontier_candidates, \
-    value_fn
+    option_table, value_fn
 from dscpp_jax.config import Config
 from dscpp_jax.dynamics import dynamics_fit_normaliser, dynamics_init, dynamics_train
 from dscpp_jax.her import HERBuffer, her_index, her_relabel, her_sample
@@ -291,6 +291,7 @@ def update_chain(config: Config, env, chain, td3, dp_table, key, seed_axis=None)
     if config.subgoal == "dp":
         dp_table = dp_value_table(config, chain, td3)
     metrics.update(chain_metrics(config, chain, env.start))
+    metrics.update(option_table(chain))
     return chain, dp_table, metrics
 
 

@@ -57,6 +57,7 @@ FREE = 0
 GESTATION = 1
 MATURE = 2
 ALWAYS = 3  # status of the global option
+STATUS_NAMES = ("free", "gestation", "mature", "always")   # by status value
 
 GLOBAL = 0
 GOAL = 1
@@ -612,6 +613,18 @@ def gestation_start_distances(chain: Chain):
     failed = mean_nearest(chain.neg_xy[g], chain.neg_mask[g])
     succeeded = mean_nearest(chain.pos_xy[g, :, 0], chain.pos_mask[g, :, 0])
     return failed.astype(jnp.float32), succeeded.astype(jnp.float32)
+
+
+TABLE_PREFIX = "table/"   # metric names of `table_columns` (the host writes them to options.csv)
+
+
+def table_columns(chain: Chain) -> dict:
+    """The option table row by row, (K,) int32 each: status, parent, executions and successes so
+    far, positive trajectories and negative starts ever recorded (the history in a run's
+    ``options.csv``; differences between two snapshots give a link's success over that span)."""
+    return {"status": chain.status, "parent": chain.parent, "executions": chain.executions,
+            "successes": chain.successes, "positives": chain.pos_count,
+            "negatives": chain.neg_count}
 
 
 def chain_metrics(chain: Chain, start_xy=None) -> dict:

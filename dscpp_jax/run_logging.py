@@ -19,13 +19,19 @@ from importlib.metadata import version
 from typing import Any, Mapping, Optional
 
 import jax
+import numpy as np
 
 from dscpp_jax.config import Config
+from dscpp_jax.options import STATUS_NAMES, TABLE_PREFIX
 
 BASE_COLUMNS = ("iteration", "env_steps", "episodes", "wall_clock")
 RUN_DIR_LAYOUT = ("a run directory, as `train` makes it, holds config.json, metrics.csv and "
                   "checkpoints/")
 WANDB_ID_FILE = "wandb_run.json"
+OPTIONS_FILE = "options.csv"
+OPTIONS_COLUMNS = ("iteration", "env_steps", "option", "status", "parent", "executions",
+                   "successes", "positives", "negatives")
+OPTIONS_EVERY = 5   # iterations between two snapshots of the option table in options.csv
 
 
 class RunDirError(ValueError):
@@ -283,11 +289,35 @@ def _fmt(v: Any) -> str:
     return f"{fv:.6g}"
 
 
+def _keep_rows(path: str, resume_iteration: Optional[int]) -> Optional[list]:
+    """The header of a CSV whose first column is the iteration, after dropping rows cut short
+    (a full disk) and, on resume, rows past `resume_iteration` (rewriting the file if any went);
+    None when the file does not exist or is empty."""
+    if not os.path.exists(path):
+        return None
+    with open(path, newline="") as f:
+        rows = list(csv.reader(f))
+    if not rows:
+        return None
+    keep = [rows[0]]
+    for r in rows[1:]:
+        if len(r) != len(rows[0]):
+            continue   # a row cut short (the disk filled up while it was written)
+        if resume_iteration is None or (r and int(float(r[0])) <= resume_iteration):
+            keep.append(r)
+    if len(keep) != len(rows):
+        atomic_write(path, _csv_text(keep))
+    return rows[0]
+
+
 class RunLogger:
     """Appends one row per logged iteration to metrics.csv; mirrors scalars to TensorBoard.
+    A row's `table/*` columns (the option table, `options.table_columns`) go to options.csv
+    instead, one line per option in use, every `OPTIONS_EVERY` iterations.
 
     The column set is fixed by the first row (or by an existing file when resuming). On resume,
-    rows past the restored iteration are dropped so the file matches the restored state.
+    rows past the restored iteration are dropped from both files so they match the restored
+    state.
     """
 
     def __init__(self, run_dir: str, columns: list[str] | None = None,
@@ -295,20 +325,9 @@ class RunLogger:
                  wandb: Optional[Mapping[str, Any]] = None):
         self.run_dir = run_dir
         self.path = os.path.join(run_dir, "metrics.csv")
-        self.columns: list[str] | None = None
-        if os.path.exists(self.path):
-            with open(self.path, newline="") as f:
-                rows = list(csv.reader(f))
-            if rows:
-                self.columns = rows[0]
-                keep = [rows[0]]
-                for r in rows[1:]:
-                    if len(r) != len(rows[0]):
-                        continue   # a row cut short (the disk filled up while it was written)
-                    if resume_iteration is None or (r and int(float(r[0])) <= resume_iteration):
-                        keep.append(r)
-                if len(keep) != len(rows):
-                    atomic_write(self.path, _csv_text(keep))
+        self.options_path = os.path.join(run_dir, OPTIONS_FILE)
+        self.columns: list[str] | None = _keep_rows(self.path, resume_iteration)
+        _keep_rows(self.options_path, resume_iteration)
         if self.columns is None and columns is not None:
             self._start(columns)
         self.tb = None
@@ -336,7 +355,28 @@ class RunLogger:
         atomic_write(self.path, _csv_text(out))
         self.columns = columns
 
+    def log_table(self, iteration: int, env_steps: float, table: Mapping[str, Any]) -> None:
+        """options.csv lines of one snapshot of the option table (`table`: name -> (K,)), for
+        the options in use."""
+        cols = {k: np.asarray(v) for k, v in table.items()}
+        status = cols["status"]
+        lines = [] if os.path.exists(self.options_path) else [list(OPTIONS_COLUMNS)]
+        for k in range(status.shape[0]):
+            s = int(status[k])
+            if s <= 0 or s >= len(STATUS_NAMES):
+                continue   # a free row (or a frozen seed's NaN)
+            lines.append([iteration, int(env_steps), k, STATUS_NAMES[s]]
+                         + [int(cols[c][k]) for c in OPTIONS_COLUMNS[4:]])
+        with open(self.options_path, "a", newline="") as f:
+            csv.writer(f).writerows(lines)
+
     def log(self, row: Mapping[str, Any]) -> None:
+        table = {k[len(TABLE_PREFIX):]: v for k, v in row.items() if k.startswith(TABLE_PREFIX)}
+        if table:
+            row = {k: v for k, v in row.items() if not k.startswith(TABLE_PREFIX)}
+            it = int(row.get("iteration", 0))
+            if it % OPTIONS_EVERY == 0:
+                self.log_table(it, float(row.get("env_steps", 0)), table)
         if self.columns is None:
             self._start(list(row))
         new = [c for c in row if c not in self.columns]

@@ -1630,7 +1630,7 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-LEAN_FILES = ("metrics.csv", "config.json", "eval.json", "group.json")
+LEAN_FILES = ("metrics.csv", "options.csv", "config.json", "eval.json", "group.json")
 
 
 def export_lean(runs_root: str, dest: str) -> int:

@@ -1,4 +1,5 @@
 """The command line end to end on a tiny config: train, checkpoint, resume, Ctrl-C, eval, plot."""
+import csv
 import json
 import os
 import shutil
@@ -6,6 +7,7 @@ import signal
 import subprocess
 import sys
 
+import jax
 import pytest
 from jax._src import xla_bridge
 
@@ -17,7 +19,9 @@ from dscpp_jax.config import preset
 from dscpp_jax.envs import ant_maze
 from dscpp_jax.host_loop import frontier_note, medium_td3_note, notes_beyond_paper
 from dscpp_jax.plots import _group_runs, plot_curves
-from dscpp_jax.run_logging import RunLogger, _git_commit, read_metrics, read_startup, write_config
+from dscpp_jax.options import STATUS_NAMES
+from dscpp_jax.run_logging import (OPTIONS_FILE, RunLogger, _git_commit, load_config, read_metrics,
+                                   read_startup, write_config)
 from dscpp_jax.runtime import (DETERMINISTIC_FLAG, FUSION_AUTOTUNER_FLAG, use_compile_cache,
                                use_deterministic_ops, use_fusion_autotuner_off, use_xla_flags)
 
@@ -99,6 +103,29 @@ def test_cli_train_resume_interrupt_eval_plot(tmp_path, monkeypatch, capsys):
     assert rc == 0
     m = read_metrics(run)
     assert m["episodes"][-1] == 8 and m["env_steps"][-1] == 800
+
+    # the option table every OPTIONS_EVERY iterations, one line per row in use, each snapshot
+    # once across the resumes (the interrupted chunk's rows past its checkpoint were dropped);
+    # the last one is the chain of the final checkpoint
+    with open(os.path.join(run, OPTIONS_FILE), newline="") as f:
+        table = list(csv.DictReader(f))
+    assert sorted({int(r["iteration"]) for r in table}) == [5, 10]
+    last = [r for r in table if r["iteration"] == "10"]
+    assert len({r["option"] for r in last}) == len(last)
+    run_cfg = load_config(run)
+    state = ck.restore_state(run, T.init(jax.random.PRNGKey(run_cfg.run.seed), run_cfg), step=10)
+    chain = state.chain
+    in_use = [k for k in range(chain.status.shape[0]) if int(chain.status[k]) != 0]
+    assert [int(r["option"]) for r in last] == in_use
+    for r in last:
+        k = int(r["option"])
+        assert r["status"] == STATUS_NAMES[int(chain.status[k])]
+        assert [int(r[c]) for c in ("parent", "executions", "successes", "positives",
+                                    "negatives")] == [int(chain.parent[k]),
+                                                      int(chain.executions[k]),
+                                                      int(chain.successes[k]),
+                                                      int(chain.pos_count[k]),
+                                                      int(chain.neg_count[k])]
 
     assert main(["eval", "--run", run, "--episodes", "2"]) == 0
     ev = json.load(open(os.path.join(run, "eval.json")))

@@ -2,6 +2,7 @@
 import csv
 import json
 import math
+import os
 
 import pytest
 
@@ -92,9 +93,9 @@ def test_each_failure_gets_its_verdict(tmp_path):
     assert D.diagnose_run(str(tmp_path / "weak"))["weak_links"] == [7]   # not the global option
     table = D.format_table([D.diagnose_run(str(tmp_path / n)) for n in cases], str(tmp_path))
     # the first row had the start covered, the last not: one loss, no link since
-    assert "| full | 0.00 | - | - | - | no | 1 | 24 (full) | 0 of 100 | - | table full |" in table
-    assert "| falls | 0.60 | - | - | - | yes | 0 | 10 | 30 of 40 | - | falls |" in table
-    assert ("| late | 0.00 | 0.97 | 0.97 | - | yes | 0 | 10 | 0 of 100 | 23 | "
+    assert "| full | 0.00 | - | - | - | no | 1 | 24 (full) | 0 of 100 | - | - | table full |" in table
+    assert "| falls | 0.60 | - | - | - | yes | 0 | 10 | 30 of 40 | - | - | falls |" in table
+    assert ("| late | 0.00 | 0.97 | 0.97 | - | yes | 0 | 10 | 0 of 100 | 23 | - | "
             "broke late (weak link 23) |") in table
     # the summary counts kinds, details left out: "weak link 7" and "weak link 23" are one kind
     assert D.verdict_kind("stalled link (targets option 15, 1200 executions)") == "stalled link"
@@ -220,3 +221,55 @@ def test_diagnose_takes_groups_and_says_what_is_missing(tmp_path, capsys):
     finally:
         monkey.undo()
     assert "| solved |" in capsys.readouterr().out
+
+
+def _options_csv(path, links):
+    """options.csv of `links`: {option: [(iteration, status, executions, successes), ...]}."""
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["iteration", "env_steps", "option", "status", "parent", "executions",
+                    "successes", "positives", "negatives"])
+        for k, snaps in links.items():
+            for it, status, e, s in snaps:
+                w.writerow([it, it * 100, k, status, k - 1, e, s, s, e - s])
+
+
+def test_fading_links_are_mature_links_whose_last_span_lost_success(tmp_path):
+    """Spans of FADE_SPAN executions from maturity on; a link fades when its best span was at
+    least FADE_BEST and its last is FADE_DROP lower. Rows in gestation, the global option and a
+    row's previous link (its counters restart) do not count."""
+    def steady(rates, start=5, e0=0, per=20):
+        out, e, s = [], e0, e0
+        for i, r in enumerate(rates):
+            out.append((start + 5 * i, "mature", e, s))
+            e, s = e + per, s + round(per * r)
+        return out + [(start + 5 * len(rates), "mature", e, s)]
+    links = {
+        0: steady([0.0] * 6),                                  # the global option: ignored
+        2: [(0, "gestation", 0, 0)] + steady([1.0, 1.0, 0.9, 0.9, 0.2, 0.2]),   # fades
+        3: steady([0.9] * 6),                                  # steady
+        4: steady([1.0] * 4) + steady([0.5, 0.5, 0.5, 0.5], start=30),   # reused row
+        5: steady([1.0, 1.0, 0.6, 0.6]),                       # a drop of 0.4: fades
+        6: steady([1.0, 1.0, 0.8, 0.8]),                       # a drop of 0.2: does not
+    }
+    d = tmp_path / "run"
+    d.mkdir()
+    _options_csv(d / "options.csv", links)
+    spans = D.link_spans(str(d / "options.csv"))
+    assert 0 not in spans
+    assert spans[2] == [(5, 15, 40, 1.0), (15, 25, 40, 0.9), (25, 35, 40, 0.2)]
+    assert [r for *_, r in spans[4]] == [0.5, 0.5]              # only the new link's spans
+    assert D.fading_links(str(d)) == [(2, 1.0, 0.2), (5, 1.0, 0.6)]
+    assert D.fading_links(str(tmp_path)) is None               # no options.csv: no reading
+
+
+def test_the_table_names_fading_links(tmp_path):
+    run = _run(tmp_path, "decayed", {"options/start_covered": 1}, {"eval/success_rate": 0.1})
+    _options_csv(os.path.join(run, "options.csv"),
+                 {7: [(5, "mature", 0, 0), (10, "mature", 50, 45), (15, "mature", 100, 55)]})
+    r = D.diagnose_run(run)
+    assert r["fading_links"] == [(7, 0.9, 0.2)]
+    assert "| 7 (0.90 to 0.20) |" in D.format_table([r])
+    old = _run(tmp_path, "old", {"options/start_covered": 1}, {"eval/success_rate": 0.9})
+    assert D.diagnose_run(old)["fading_links"] is None
+    assert D.format_table([D.diagnose_run(old)]).splitlines()[-1].endswith("| - | - | solved |")
