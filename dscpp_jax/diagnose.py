@@ -65,7 +65,9 @@ import os
 from typing import Optional, Sequence
 
 from dscpp_jax.host_loop import STALLED_LINK_EXECUTIONS, link_stalled  # noqa: F401 (re-exported)
+from dscpp_jax.options import GLOBAL, MATURE, STATUS_NAMES
 from dscpp_jax.run_dir import is_group_dir, seed_dirs
+from dscpp_jax.run_logging import OPTIONS_FILE
 
 SOLVED = 0.8              # success from the start at or above this: nothing to diagnose
 WEAK_LINK = 0.2           # an option that succeeds in fewer of its evaluation executions is weak
@@ -163,7 +165,7 @@ def link_spans(path: str) -> dict:
     snaps: dict = collections.defaultdict(list)
     with open(path, newline="") as f:
         for row in csv.DictReader(f):
-            if row.get("status") != "mature" or row.get("option") in (None, "0"):
+            if row.get("status") != STATUS_NAMES[MATURE] or int(row["option"]) == GLOBAL:
                 continue   # the chain's links: the goal option and its descendants
             snaps[int(row["option"])].append((int(row["iteration"]), int(row["executions"]),
                                               int(row["successes"])))
@@ -184,7 +186,7 @@ def link_spans(path: str) -> dict:
 def fading_links(run_dir: str) -> Optional[list]:
     """[(option, best span's success rate, last span's), ...] of a run's mature links that fade
     (see the module docstring), most faded first; None when the run has no ``options.csv``."""
-    path = os.path.join(run_dir, "options.csv")
+    path = os.path.join(run_dir, OPTIONS_FILE)
     if not os.path.isfile(path):
         return None
     out = []
